@@ -1,0 +1,117 @@
+"""Tile binning into a static pair buffer, and the per-tile chunk layout.
+
+Surfels are sorted by centre depth first; pairs are generated in that order and then stably
+sorted by tile id, so each tile's list is front to back without a second sort key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.raster.project import Projected
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TileGrid:
+    tiles_x: int = dataclasses.field(metadata=dict(static=True))
+    tiles_y: int = dataclasses.field(metadata=dict(static=True))
+    tile_size: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @staticmethod
+    def for_image(width: int, height: int, tile_size: int) -> "TileGrid":
+        return TileGrid(-(-width // tile_size), -(-height // tile_size), tile_size)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Sorted pairs cut into chunks of `chunk_size` pairs that never span two tiles."""
+
+    pair_surfel: jax.Array    # (C,) surfel id of each sorted pair
+    chunk_tile: jax.Array     # (W,) tile of each chunk (num_tiles for unused chunks)
+    chunk_start: jax.Array    # (W,) first pair of the chunk
+    chunk_count: jax.Array    # (W,) pairs in the chunk (0 for unused chunks)
+    chunk_first: jax.Array    # (W,) bool: first chunk of its tile
+    tile_count: jax.Array     # (T,) pairs per tile
+    num_pairs: jax.Array      # () pairs needed (may exceed C: overflow)
+
+
+def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid):
+    """Inclusive tile rectangles (x0, y0, x1, y1) and pair counts per surfel."""
+    ts = grid.tile_size
+    # Pixel centres j + 0.5 inside [box_min, box_max].
+    lo = jnp.ceil(p.box_min - 0.5)
+    hi = jnp.floor(p.box_max - 0.5)
+    size = jnp.array([width, height], jnp.float32)
+    hits = p.visible & jnp.all((hi >= 0) & (lo <= size - 1) & (lo <= hi), axis=1)
+    lo = jnp.clip(lo, 0, size - 1).astype(jnp.int32) // ts
+    hi = jnp.clip(hi, 0, size - 1).astype(jnp.int32) // ts
+    extent = hi - lo + 1
+    counts = jnp.where(hits, extent[:, 0] * extent[:, 1], 0)
+    return lo, hi, counts
+
+
+def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
+    """For each slot in [0, size), the index of the segment (starts, counts) covering it.
+
+    Segments are consecutive; the owner of slot p is (number of starts <= p) - 1, counted by a
+    scatter-add and a cumulative sum (linear, unlike a binary search per slot).
+    """
+    hist = jnp.zeros(size + 1, jnp.int32).at[jnp.minimum(starts, size)].add(1)
+    return jnp.cumsum(hist[:size]) - 1
+
+
+def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
+              chunk_size: int, num_chunks: int) -> Layout:
+    n = p.depth.shape[0]
+    lo, hi, counts = tile_ranges(p, width, height, grid)
+    order = jnp.argsort(p.depth, stable=True)
+    sorted_counts = counts[order]
+    ends = jnp.cumsum(sorted_counts)
+    starts = ends - sorted_counts
+    num_pairs = ends[-1] if n else jnp.int32(0)
+
+    slot = jnp.arange(capacity, dtype=jnp.int32)
+    owner = jnp.clip(_owner(starts, sorted_counts, capacity), 0, max(n - 1, 0))
+    surfel = order[owner]
+    local = slot - starts[owner]
+    row_len = (hi[surfel, 0] - lo[surfel, 0] + 1)
+    tile = (lo[surfel, 1] + local // row_len) * grid.tiles_x + lo[surfel, 0] + local % row_len
+    tile = jnp.where(slot < num_pairs, tile, grid.num_tiles)
+    tile, pair_surfel = jax.lax.sort((tile, surfel), num_keys=1, is_stable=True)
+
+    tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
+    tile_start = jnp.cumsum(tile_count) - tile_count
+    chunks = -(-tile_count // chunk_size)
+    chunk_offset = jnp.cumsum(chunks) - chunks
+    w = jnp.arange(num_chunks, dtype=jnp.int32)
+    chunk_tile = jnp.clip(_owner(chunk_offset, chunks, num_chunks), 0, grid.num_tiles - 1)
+    used = w < jnp.sum(chunks)
+    k = w - chunk_offset[chunk_tile]
+    chunk_start = tile_start[chunk_tile] + k * chunk_size
+    chunk_count = jnp.where(used, jnp.clip(tile_count[chunk_tile] - k * chunk_size, 0, chunk_size), 0)
+    return Layout(
+        pair_surfel=pair_surfel,
+        chunk_tile=jnp.where(used, chunk_tile, grid.num_tiles),
+        chunk_start=chunk_start, chunk_count=chunk_count, chunk_first=used & (k == 0),
+        tile_count=tile_count, num_pairs=num_pairs)
+
+
+def count_pairs(p: Projected, width: int, height: int, grid: TileGrid) -> tuple[jax.Array, jax.Array]:
+    """(total pairs, pairs of the fullest tile) from the tile rectangles via a 2D difference array."""
+    lo, hi, counts = tile_ranges(p, width, height, grid)
+    hit = counts > 0
+    diff = jnp.zeros((grid.tiles_y + 1, grid.tiles_x + 1), jnp.int32)
+    one = hit.astype(jnp.int32)
+    diff = (diff.at[lo[:, 1], lo[:, 0]].add(one).at[lo[:, 1], hi[:, 0] + 1].add(-one)
+            .at[hi[:, 1] + 1, lo[:, 0]].add(-one).at[hi[:, 1] + 1, hi[:, 0] + 1].add(one))
+    per_tile = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)
+    return jnp.sum(counts), jnp.max(per_tile)

@@ -1,0 +1,188 @@
+"""Front-to-back compositing of binned surfels, tile by tile, with static shapes.
+
+Transmittance is carried in log space, so a tile's list can be cut into fixed-size chunks
+that are evaluated in parallel:
+  pass 1: per chunk, the sum of log(1 - alpha) per pixel; a segmented scan over the chunks
+          of each tile gives the log-transmittance at every chunk's start;
+  pass 2: per chunk, weights w = alpha T and their sums against the features.
+Every output is then a plain sum over surfels, sum_i w_i f_i, with features
+f = [1, r, g, b, z, nx, ny, nz, m, m^2] (m the NDC depth of the distortion term), plus the
+median depth, which picks one surfel per pixel.
+
+Backward ("custom_vjp"): d/dalpha_i sum_j w_j f_j = T_i f_i - S_i / (1 - alpha_i), with
+S_i = sum_{j>i} w_j f_j = total - inclusive prefix; the prefix at each chunk's start is kept
+from the forward pass, so the backward is one more parallel pass over the chunks that
+recomputes alpha and differentiates only the per-chunk evaluation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.raster.project import evaluate_pixels
+
+NUM_FEATURES = 10
+T_MIN = 1e-4          # stop before a surfel would take transmittance below this
+LOG_T_FLOOR = -60.0   # transmittance far below T_MIN: keeps sums finite in float32
+
+
+@dataclasses.dataclass(frozen=True)
+class Static:
+    """Static settings of one compositing call (hashable)."""
+
+    tiles_x: int
+    tile_size: int
+    num_tiles: int
+    near: float
+    far: float
+    lowpass_filter: bool
+    batch_chunks: int
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ChunkParams:
+    """Per-pair surfel parameters laid out as (chunks, chunk_size, ...)."""
+
+    M: jax.Array
+    center: jax.Array
+    opacity: jax.Array
+    color: jax.Array
+    normal: jax.Array
+    depth: jax.Array
+
+
+def tile_pixels(tile: jax.Array, st: Static) -> jax.Array:
+    """(ts*ts, 2) pixel-centre coordinates of a tile, row-major."""
+    ts = st.tile_size
+    offs = jnp.arange(ts, dtype=jnp.float32) + 0.5
+    x0 = (tile % st.tiles_x) * ts
+    y0 = (tile // st.tiles_x) * ts
+    xs, ys = jnp.meshgrid(x0 + offs, y0 + offs)
+    return jnp.stack([xs.ravel(), ys.ravel()], axis=-1)
+
+
+def evaluate_chunk(cp: ChunkParams, valid: jax.Array, tile: jax.Array, st: Static):
+    """alpha (B,P), hit depth (B,P) and features (B,P,F) of one chunk on its tile's pixels."""
+    xy = tile_pixels(tile, st)[None]
+    alpha, z = evaluate_pixels(cp.M[:, None], cp.center[:, None], cp.opacity[:, None],
+                               cp.depth[:, None], xy, st.near, st.lowpass_filter)
+    alpha = jnp.where(valid[:, None], alpha, 0.0)
+    hit = alpha > 0
+    z = jnp.where(hit, z, st.near)
+    m = st.far / (st.far - st.near) * (1.0 - st.near / z)
+    b, p = alpha.shape
+    fe = jnp.concatenate([
+        jnp.ones((b, p, 1)), jnp.broadcast_to(cp.color[:, None], (b, p, 3)), z[..., None],
+        jnp.broadcast_to(cp.normal[:, None], (b, p, 3)), m[..., None], (m * m)[..., None]], -1)
+    return alpha, z, jnp.where(hit[..., None], fe, 0.0)
+
+
+def _blend(alpha: jax.Array, log_t0: jax.Array):
+    """Transmittance before each surfel, inclusion mask and weights within one chunk."""
+    log1m = jnp.log1p(-alpha)
+    log_before = log_t0[None] + jnp.cumsum(log1m, axis=0) - log1m
+    t_before = jnp.exp(log_before)
+    included = (alpha > 0) & (jnp.exp(log_before + log1m) >= T_MIN)
+    weight = jnp.where(included, alpha * t_before, 0.0)
+    return t_before, included, weight
+
+
+def _last_median(included, t_before):
+    """Per pixel, a one-hot over the chunk marking the last surfel with T > 0.5, and whether any."""
+    flag = included & (t_before > 0.5)
+    later = jnp.cumsum(flag[::-1].astype(jnp.int32), axis=0)[::-1] - flag
+    return flag & (later == 0), jnp.any(flag, axis=0)
+
+
+def segmented_exclusive_cumsum(values: jax.Array, first: jax.Array) -> jax.Array:
+    """Exclusive cumulative sum along axis 0 that restarts where `first` is set."""
+    def combine(a, b):
+        fa, va = a
+        fb, vb = b
+        fb_ = fb.reshape(fb.shape + (1,) * (vb.ndim - fb.ndim))
+        return fa | fb, jnp.where(fb_, vb, va + vb)
+
+    _, inclusive = jax.lax.associative_scan(combine, (first, values))
+    previous = jnp.concatenate([jnp.zeros_like(inclusive[:1]), inclusive[:-1]])
+    return jnp.where(first.reshape(first.shape + (1,) * (values.ndim - 1)), 0.0, previous)
+
+
+def _map(fn, xs, st: Static, remat: bool):
+    fn = jax.checkpoint(fn) if remat else fn
+    return jax.lax.map(lambda x: fn(*x), xs, batch_size=st.batch_chunks)
+
+
+def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
+    def pass1(cp_w, valid_w, tile_w):
+        alpha, _, _ = evaluate_chunk(cp_w, valid_w, tile_w, st)
+        return jnp.sum(jnp.log1p(-alpha), axis=0)
+
+    log_sum = _map(pass1, (cp, valid, tile), st, remat)
+    log_t0 = jnp.maximum(segmented_exclusive_cumsum(log_sum, first), LOG_T_FLOOR)
+
+    def pass2(cp_w, valid_w, tile_w, log_t0_w):
+        alpha, z, fe = evaluate_chunk(cp_w, valid_w, tile_w, st)
+        t_before, included, weight = _blend(alpha, log_t0_w)
+        last, has = _last_median(included, t_before)
+        sums = jnp.einsum("bp,bpf->pf", weight, fe)
+        return sums, jnp.sum(jnp.where(last, z, 0.0), axis=0), has
+
+    sums, z_last, has = _map(pass2, (cp, valid, tile, log_t0), st, remat)
+    totals = jnp.zeros((st.num_tiles,) + sums.shape[1:]).at[tile].add(sums, mode="drop")
+    chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)[:, None]
+    selected = jnp.full((st.num_tiles, sums.shape[1]), -1, jnp.int32).at[tile].max(
+        jnp.where(has, chunk_id, -1), mode="drop")
+    pixel = jnp.arange(sums.shape[1])[None]
+    median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), pixel], 0.0)
+    return (totals, median), (log_t0, sums, totals, selected)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def composite_custom(st: Static, cp: ChunkParams, valid, tile, first):
+    return _forward(st, cp, valid, tile, first, remat=False)[0]
+
+
+def _custom_fwd(st, cp, valid, tile, first):
+    outputs, (log_t0, sums, totals, selected) = _forward(st, cp, valid, tile, first, remat=False)
+    prefix = segmented_exclusive_cumsum(sums, first)
+    return outputs, (cp, valid, tile, log_t0, prefix, totals, selected)
+
+
+def _custom_bwd(st, residuals, cotangents):
+    cp, valid, tile, log_t0, prefix, totals, selected = residuals
+    g_totals, g_median = cotangents
+    pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
+    g_totals, g_median = pad(g_totals, 0.0), pad(g_median, 0.0)
+    totals, selected = pad(totals, 0.0), pad(selected, -1)
+
+    def chunk_grad(cp_w, valid_w, tile_w, log_t0_w, prefix_w, w):
+        (alpha, z, fe), pullback = jax.vjp(lambda c: evaluate_chunk(c, valid_w, tile_w, st), cp_w)
+        t_before, included, weight = _blend(alpha, log_t0_w)
+        inclusive = prefix_w[None] + jnp.cumsum(weight[..., None] * fe, axis=0)
+        after = totals[tile_w][None] - inclusive
+        g = g_totals[tile_w][None]
+        d_alpha = jnp.sum(g * (t_before[..., None] * fe - after / (1.0 - alpha)[..., None]), -1)
+        d_alpha = jnp.where(included, d_alpha, 0.0)
+        d_fe = g * weight[..., None]
+        last, _ = _last_median(included, t_before)
+        d_z = jnp.where(last & (selected[tile_w] == w)[None], g_median[tile_w][None], 0.0)
+        return pullback((d_alpha, d_z, d_fe))[0]
+
+    chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)
+    d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, prefix, chunk_id), st, remat=False)
+    return d_cp, None, None, None
+
+
+composite_custom.defvjp(_custom_fwd, _custom_bwd)
+
+
+def composite(st: Static, cp: ChunkParams, valid, tile, first, backward: str):
+    """Per-tile feature sums (T, P, F) and median depth (T, P)."""
+    if backward == "custom_vjp":
+        return composite_custom(st, cp, valid, tile, first)
+    return _forward(st, cp, valid, tile, first, remat=True)[0]

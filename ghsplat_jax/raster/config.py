@@ -1,0 +1,72 @@
+"""Rasterizer configuration and output pytrees."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+
+
+class RasterOverflowError(RuntimeError):
+    """More tile-surfel pairs than the static pair capacity; nothing is ever dropped quietly."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterConfig:
+    """Static rasterizer settings (hashable, so they can be jit static arguments)."""
+
+    near: float = 0.2                      # cull centres and skip hits nearer than this (metres)
+    far: float = 100.0                     # far plane of the NDC depth used by the distortion term
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rgb behind the last surfel
+    tile_size: int = 16                    # 8, 16 or 32 pixel tiles
+    lowpass_filter: bool = True            # 2DGS screen-space filter rho = min(rho3, 2|x - c|^2)
+    chunk_size: int = 32                   # surfels blended per vectorised step within a tile
+    batch_chunks: int = 16                 # chunks evaluated together (memory vs. loop overhead)
+    backward: str = "custom_vjp"           # "custom_vjp" (analytic compositing) or "autodiff" (checkpointed)
+    backend: str = "tiled"                 # "tiled" (this rasterizer) or "dense" (naive per-tile baseline)
+    sh_degree: int | None = None           # active SH bands; None uses every band the data has
+    pair_capacity: int | None = None       # static tile-surfel pair buffer; None sizes it automatically
+    on_overflow: str = "raise"             # under jit: "raise" a runtime error or "report" in stats only
+
+    def __post_init__(self):
+        if self.tile_size not in (8, 16, 32):
+            raise ValueError(f"tile_size must be 8, 16 or 32, got {self.tile_size}")
+        if self.backward not in ("custom_vjp", "autodiff"):
+            raise ValueError(f"backward must be 'custom_vjp' or 'autodiff', got {self.backward!r}")
+        if self.backend not in ("tiled", "dense"):
+            raise ValueError(f"backend must be 'tiled' or 'dense', got {self.backend!r}")
+        if self.on_overflow not in ("raise", "report"):
+            raise ValueError(f"on_overflow must be 'raise' or 'report', got {self.on_overflow!r}")
+        if self.chunk_size < 1 or self.batch_chunks < 1:
+            raise ValueError("chunk_size and batch_chunks must be positive")
+        if not self.near > 0 or not self.far > self.near:
+            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+        object.__setattr__(self, "background", tuple(float(c) for c in self.background))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RasterStats:
+    """Binning statistics of one render (int32 scalars)."""
+
+    num_pairs: jax.Array        # tile-surfel pairs needed
+    capacity: jax.Array         # pairs the static buffer holds
+    overflow: jax.Array         # pairs that did not fit (the render is incomplete when > 0)
+    num_visible: jax.Array      # surfels touching at least one tile
+    num_invalid: jax.Array      # non-finite parameters or zero quaternion: culled
+    num_culled_near: jax.Array  # centre at or behind the near plane
+    max_tile_pairs: jax.Array   # most surfels overlapping one tile
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RenderOutput:
+    rgb: jax.Array           # (H,W,3) over the background
+    alpha: jax.Array         # (H,W) accumulated opacity
+    depth: jax.Array         # (H,W) expected z-depth sum(w z) / alpha (0 where alpha = 0)
+    median_depth: jax.Array  # (H,W) depth of the surfel where accumulated opacity crosses 0.5
+    normal: jax.Array        # (H,W,3) world-frame normals facing the camera, alpha-weighted
+    distortion: jax.Array    # (H,W) sum_{i<j} w_i w_j (m_i - m_j)^2 of NDC depths m
+    visible: jax.Array       # (N,) surfel touches at least one tile
+    radii: jax.Array         # (N,) half-extent of the screen box in pixels (0 when culled)
+    stats: RasterStats

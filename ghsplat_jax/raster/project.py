@@ -1,0 +1,138 @@
+"""Per-surfel projection: ray transform, screen box, filter centre, colour and normal.
+
+Follows the 2DGS reference: M = K [s_u t_u | s_v t_v | mu] in camera space; the screen box
+and the filter centre come from the dual conic of the 3-sigma ellipse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.core import quaternions, sh
+from ghsplat_jax.core.camera import Camera
+from ghsplat_jax.core.surfels import Surfels
+
+CUTOFF = 3.0                       # box and ellipse at 3 sigma
+FILTER_REACH = 3.0 * 0.7071067811865476  # the low-pass filter's reach in pixels (3 sqrt(2)/2)
+LOG_SCALE_RANGE = (-25.0, 15.0)    # beyond this scales overflow float32 products
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Projected:
+    """What the compositor needs per surfel (all differentiable except the masks)."""
+
+    M: jax.Array          # (N,3,3) ray transform, rows
+    center: jax.Array     # (N,2) low-pass filter centre (pixels)
+    opacity: jax.Array    # (N,)
+    color: jax.Array      # (N,3)
+    normal: jax.Array     # (N,3) world frame, facing the camera
+    depth: jax.Array      # (N,) view depth of the centre (sort key, filter-branch depth)
+    box_min: jax.Array    # (N,2) screen box, pixels
+    box_max: jax.Array    # (N,2)
+    visible: jax.Array    # (N,) bool: valid, in front of near, box on screen
+    invalid: jax.Array    # (N,) bool: non-finite parameters or zero quaternion
+    culled_near: jax.Array  # (N,) bool
+
+
+def _finite_rows(x: jax.Array) -> jax.Array:
+    return jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
+
+
+def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter: bool,
+            means2d_probe: jax.Array | None = None) -> Projected:
+    n = s.means.shape[0]
+    finite = (_finite_rows(s.means) & _finite_rows(s.quats) & _finite_rows(s.log_scales)
+              & jnp.isfinite(s.opacity_logits) & _finite_rows(s.sh_dc) & _finite_rows(s.sh_rest))
+    # Non-finite inputs are replaced before any arithmetic so no NaN reaches gradients.
+    clean = lambda x, fill=0.0: jnp.where(finite.reshape((n,) + (1,) * (x.ndim - 1)), x, fill)
+    means = clean(s.means)
+    quat, quat_ok = quaternions.safe_normalize(clean(s.quats))
+    scales = jnp.exp(jnp.clip(clean(s.log_scales), *LOG_SCALE_RANGE))
+    opacity = jax.nn.sigmoid(clean(s.opacity_logits, -20.0))
+    invalid = ~(finite & quat_ok)
+
+    R_world = quaternions.to_rotation_matrix(quat)                 # columns t_u, t_v, n
+    R_wc, t_wc = cam.world_to_cam[:3, :3], cam.world_to_cam[:3, 3]
+    mu_c = means @ R_wc.T + t_wc
+    tangents_c = jnp.einsum("ij,njk->nik", R_wc, R_world[:, :, :2]) * scales[:, None, :]
+    local = jnp.concatenate([tangents_c, mu_c[:, :, None]], axis=2)  # [s_u t_u | s_v t_v | mu]
+    M = jnp.einsum("ij,njk->nik", cam.K, local)
+    depth = mu_c[:, 2]
+
+    # Dual conic of u^2 + v^2 = CUTOFF^2: C* = M diag(c^2, c^2, -1) M^T.
+    f = jnp.array([CUTOFF**2, CUTOFF**2, -1.0])
+    dist = jnp.sum(f * M[:, 2] ** 2, axis=1)
+    bounded = dist < -1e-12 * jnp.maximum(depth**2, 1e-12)  # ellipse entirely in front of the camera
+    safe_dist = jnp.where(bounded, dist, -1.0)
+    conic_center = jnp.stack([jnp.sum(f * M[:, 0] * M[:, 2], 1), jnp.sum(f * M[:, 1] * M[:, 2], 1)], 1)
+    conic_center = conic_center / safe_dist[:, None]
+    diag = jnp.stack([jnp.sum(f * M[:, 0] ** 2, 1), jnp.sum(f * M[:, 1] ** 2, 1)], 1) / safe_dist[:, None]
+    half = jnp.sqrt(jnp.maximum(conic_center**2 - diag, 1e-4))
+    reach = FILTER_REACH if lowpass_filter else 0.5
+    half = jnp.maximum(half, reach)
+
+    safe_depth = jnp.where(jnp.abs(depth) > 1e-12, depth, 1.0)
+    projected_mean = M[:, :2, 2] / safe_depth[:, None]
+    center = jnp.where(bounded[:, None], conic_center, projected_mean)
+    # An ellipse that crosses the camera plane projects to an unbounded conic: whole screen.
+    big = jnp.float32(1e9)
+    box_min = jnp.where(bounded[:, None], center - half, -big)
+    box_max = jnp.where(bounded[:, None], center + half, big)
+
+    if means2d_probe is not None:
+        # Shifts the projected centre column only; the filter centre keeps its value, so the
+        # probe's gradient excludes the filter branch like the reference's densification signal.
+        shift = means2d_probe * M[:, 2, 2][:, None]
+        M = M.at[:, 0, 2].add(shift[:, 0]).at[:, 1, 2].add(shift[:, 1])
+
+    culled_near = ~invalid & (depth <= near)
+    on_screen = (box_max[:, 0] > 0) & (box_min[:, 0] < cam.width) & (box_max[:, 1] > 0) & (box_min[:, 1] < cam.height)
+    visible = ~invalid & ~culled_near & on_screen & jnp.all(jnp.isfinite(M.reshape(n, 9)), 1)
+
+    cam_center = cam.center
+    view_dir = means - cam_center
+    dir_norm2 = jnp.sum(view_dir**2, axis=1, keepdims=True)
+    dirs = view_dir / jnp.sqrt(jnp.where(dir_norm2 > 0, dir_norm2, 1.0))
+    color = sh.evaluate(clean(s.sh_dc), clean(s.sh_rest), dirs, sh_degree)
+    normal = R_world[:, :, 2]
+    normal = jnp.where(jnp.sum(normal * view_dir, axis=1, keepdims=True) > 0, -normal, normal)
+
+    zero_if_hidden = lambda x: jnp.where(visible.reshape((n,) + (1,) * (x.ndim - 1)), x, 0.0)
+    return Projected(
+        M=jnp.where(visible[:, None, None], M, jnp.eye(3)), center=zero_if_hidden(center),
+        opacity=zero_if_hidden(opacity), color=zero_if_hidden(color), normal=zero_if_hidden(normal),
+        depth=jnp.where(visible, depth, jnp.inf), box_min=box_min, box_max=box_max,
+        visible=visible, invalid=invalid, culled_near=culled_near)
+
+
+def evaluate_pixels(M, center, opacity, depth, xy, near: float, lowpass_filter: bool):
+    """alpha and hit depth of surfels at pixel centres; broadcasts over leading axes.
+
+    M (...,3,3), center (...,2), opacity (...), depth (...) against xy (...,2).
+    Returns (alpha, z), alpha already zero where the hit is invalid or below 1/255.
+    """
+    x, y = xy[..., 0], xy[..., 1]
+    k = x[..., None] * M[..., 2, :] - M[..., 0, :]
+    l = y[..., None] * M[..., 2, :] - M[..., 1, :]
+    p = jnp.cross(k, l)
+    # Edge-on surfels (p2 -> 0) would put the hit at infinity: take the filter branch instead.
+    ok = (jnp.abs(p[..., 0]) < 1e6 * jnp.abs(p[..., 2])) & (jnp.abs(p[..., 1]) < 1e6 * jnp.abs(p[..., 2]))
+    p2 = jnp.where(ok, p[..., 2], 1.0)
+    u, v = jnp.where(ok, p[..., 0], 0.0) / p2, jnp.where(ok, p[..., 1], 0.0) / p2
+    rho3 = jnp.where(ok, u * u + v * v, jnp.inf)
+    if lowpass_filter:
+        d = xy - center
+        rho2 = 2.0 * jnp.sum(d * d, axis=-1)
+    else:
+        rho2 = jnp.full_like(rho3, jnp.inf)
+    use_hit = rho3 <= rho2
+    rho = jnp.where(use_hit, rho3, rho2)
+    hit_z = u * M[..., 2, 0] + v * M[..., 2, 1] + M[..., 2, 2]
+    z = jnp.where(use_hit, hit_z, depth)
+    alpha = jnp.minimum(0.99, opacity * jnp.exp(-0.5 * jnp.where(jnp.isfinite(rho), rho, 1e10)))
+    keep = (alpha >= 1.0 / 255.0) & (z >= near)
+    return jnp.where(keep, alpha, 0.0), z

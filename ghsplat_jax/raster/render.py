@@ -1,0 +1,184 @@
+"""The public renderer: `render(surfels, camera, config)`.
+
+`rasterize` is the pure, jit-able function with a static pair capacity. `render` picks that
+capacity: eagerly it counts the pairs first and uses the smallest capacity bucket that fits
+(so nothing is dropped and recompilation happens only when a bucket grows); under a trace it
+uses `config.pair_capacity` and reports (or raises on) overflow.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.core.camera import Camera
+from ghsplat_jax.core.surfels import Surfels
+from ghsplat_jax.raster import binning, composite, naive
+from ghsplat_jax.raster.config import RasterConfig, RasterOverflowError, RasterStats, RenderOutput
+from ghsplat_jax.raster.project import Projected, project
+
+MIN_CAPACITY = 1 << 12
+
+
+def capacity_bucket(pairs: int) -> int:
+    """Smallest of 1, 1.25, 1.5, 1.75 x 2^k at or above `pairs` (wastes at most 25%)."""
+    pairs = max(int(pairs), MIN_CAPACITY)
+    base = 1 << (pairs.bit_length() - 1)
+    for step in (4, 5, 6, 7, 8):
+        if base * step // 4 >= pairs:
+            return base * step // 4
+    raise AssertionError("unreachable")
+
+
+def _as_surfels(s: Surfels) -> Surfels:
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), s)
+
+
+def _sh_degree(s: Surfels, cfg: RasterConfig) -> int:
+    return s.sh_degree if cfg.sh_degree is None else min(cfg.sh_degree, s.sh_degree)
+
+
+def _chunk_params(p: Projected, index) -> composite.ChunkParams:
+    return composite.ChunkParams(M=p.M[index], center=p.center[index], opacity=p.opacity[index],
+                                 color=p.color[index], normal=p.normal[index], depth=p.depth[index])
+
+
+def _num_chunks(capacity: int, grid: binning.TileGrid, cfg: RasterConfig) -> int:
+    chunks = capacity // cfg.chunk_size + grid.num_tiles
+    return -(-chunks // cfg.batch_chunks) * cfg.batch_chunks
+
+
+def _image(tiles: jax.Array, grid: binning.TileGrid, width: int, height: int) -> jax.Array:
+    ts = grid.tile_size
+    x = tiles.reshape((grid.tiles_y, grid.tiles_x, ts, ts) + tiles.shape[2:])
+    x = jnp.swapaxes(x, 1, 2).reshape((grid.tiles_y * ts, grid.tiles_x * ts) + tiles.shape[2:])
+    return x[:height, :width]
+
+
+def _safe_divide(num, den):
+    ok = den > 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
+             capacity: int) -> RenderOutput:
+    img = _image(totals, grid, cam.width, cam.height)
+    a = img[..., 0]
+    background = jnp.asarray(cfg.background, jnp.float32)
+    d1, d2 = img[..., 8], img[..., 9]
+    radii = jnp.where(p.visible, jnp.max(p.box_max - p.box_min, axis=1) / 2, 0.0)
+    stats = RasterStats(
+        num_pairs=layout.num_pairs, capacity=jnp.int32(capacity),
+        overflow=jnp.maximum(layout.num_pairs - capacity, 0),
+        num_visible=jnp.sum(p.visible).astype(jnp.int32),
+        num_invalid=jnp.sum(p.invalid).astype(jnp.int32),
+        num_culled_near=jnp.sum(p.culled_near).astype(jnp.int32),
+        max_tile_pairs=jnp.max(layout.tile_count))
+    return RenderOutput(
+        rgb=img[..., 1:4] + (1.0 - a[..., None]) * background, alpha=a,
+        depth=_safe_divide(img[..., 4], a), median_depth=_image(median, grid, cam.width, cam.height),
+        normal=img[..., 5:8], distortion=jnp.maximum(a * d2 - d1 * d1, 0.0),
+        visible=p.visible, radii=radii, stats=stats)
+
+
+def _empty(cam: Camera, cfg: RasterConfig) -> RenderOutput:
+    h, w = cam.height, cam.width
+    zero = jnp.int32(0)
+    return RenderOutput(
+        rgb=jnp.broadcast_to(jnp.asarray(cfg.background, jnp.float32), (h, w, 3)),
+        alpha=jnp.zeros((h, w)), depth=jnp.zeros((h, w)), median_depth=jnp.zeros((h, w)),
+        normal=jnp.zeros((h, w, 3)), distortion=jnp.zeros((h, w)), visible=jnp.zeros((0,), bool),
+        radii=jnp.zeros((0,)), stats=RasterStats(zero, zero, zero, zero, zero, zero, zero))
+
+
+def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
+              means2d_probe: jax.Array | None = None, tile_slots: int | None = None) -> RenderOutput:
+    """Render with a static pair capacity; pairs beyond it are counted in stats.overflow.
+
+    `tile_slots` is the dense baseline's per-tile capacity (default: enough for any tile).
+    """
+    if s.means.shape[0] == 0:
+        return _empty(cam, cfg)
+    grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
+    p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
+    st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
+                          cfg.lowpass_filter, cfg.batch_chunks)
+    layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
+                               _num_chunks(capacity, grid, cfg))
+    if cfg.backend == "dense":
+        slots = tile_slots or min(s.means.shape[0], capacity)
+        starts = jnp.cumsum(layout.tile_count) - layout.tile_count
+        pair_valid = jnp.arange(capacity) < layout.num_pairs
+        totals, median = naive.composite_dense(st, _chunk_params(p, layout.pair_surfel), pair_valid,
+                                               slots, starts, layout.tile_count)
+    else:
+        pair = layout.chunk_start[:, None] + jnp.arange(cfg.chunk_size)[None]
+        valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
+        surfel = layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)]
+        totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
+                                             layout.chunk_first, cfg.backward)
+    out = _outputs(totals, median, cfg, grid, cam, p, layout, capacity)
+    if cfg.on_overflow == "raise" and isinstance(out.stats.num_pairs, jax.core.Tracer):
+        jax.debug.callback(_raise_on_overflow, out.stats.num_pairs, capacity)
+    return out
+
+
+def _raise_on_overflow(num_pairs, capacity):
+    if int(num_pairs) > capacity:
+        raise RasterOverflowError(
+            f"the render needs {int(num_pairs)} tile-surfel pairs but the pair capacity is {capacity}; "
+            f"pass RasterConfig(pair_capacity={capacity_bucket(int(num_pairs))}) or more, or render "
+            f"eagerly with pair_capacity=None to size it automatically")
+
+
+_rasterize_jit = jax.jit(rasterize, static_argnames=("cfg", "capacity", "tile_slots"))
+
+
+def _count_pairs(s: Surfels, cam: Camera, cfg: RasterConfig) -> tuple[jax.Array, jax.Array]:
+    """Exact (total pairs, pairs in the fullest tile), without building the pair list."""
+    grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
+    p = project(s, cam, cfg.near, 0, cfg.lowpass_filter)
+    return binning.count_pairs(p, cam.width, cam.height, grid)
+
+
+count_pairs = jax.jit(_count_pairs, static_argnames=("cfg",))
+
+
+def _is_traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
+def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
+           means2d_probe: jax.Array | None = None) -> RenderOutput:
+    """Render surfels from a camera: rgb, alpha, depths, normals, distortion and binning stats.
+
+    Differentiable in every Surfels field; works under jax.jit and jax.vmap (there give
+    `cfg.pair_capacity`, or a default guess is used and an overflow raises or is reported
+    per `cfg.on_overflow`). Eagerly, the capacity is sized from an exact pair count, so a
+    render never loses a pair and recompiles only when a capacity bucket grows.
+    """
+    cfg = RasterConfig() if cfg is None else cfg
+    s = _as_surfels(s)
+    if _is_traced((s, cam, means2d_probe)):
+        capacity = cfg.pair_capacity or default_capacity(s.means.shape[0], cam, cfg)
+        return rasterize(s, cam, cfg, capacity, means2d_probe)
+    if s.means.shape[0] == 0:
+        return _empty(cam, cfg)
+    needed, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg)))
+    capacity = capacity_bucket(max(needed, cfg.pair_capacity or 0))
+    slots = max(32, 1 << max(fullest - 1, 0).bit_length()) if cfg.backend == "dense" else None
+    out = _rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots)
+    if int(out.stats.overflow):  # the count is exact, so this is a bug: never return a partial image
+        raise RasterOverflowError(f"pair count {needed} disagreed with the render ({int(out.stats.num_pairs)})")
+    return out
+
+
+def _binning_cfg(cfg: RasterConfig) -> RasterConfig:
+    # Only the fields that change binning matter, so one compiled counter serves all variants.
+    return RasterConfig(near=cfg.near, far=cfg.far, tile_size=cfg.tile_size, lowpass_filter=cfg.lowpass_filter)
+
+
+def default_capacity(num_surfels: int, cam: Camera, cfg: RasterConfig) -> int:
+    """A guess for traced renders without an explicit capacity: 8 tiles per surfel."""
+    grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
+    return capacity_bucket(min(8 * num_surfels + grid.num_tiles, num_surfels * grid.num_tiles))

@@ -1,0 +1,181 @@
+"""Gaussian PLY files: the 2DGS layout, 3DGS files on read, a viewer-compatible variant on write.
+
+Layout: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0 scale_1 rot_0..3 (float32),
+f_rest channel-major (all red coefficients, then green, then blue).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ghsplat_jax.core.surfels import Surfels, sh_degree_from_rest
+from ghsplat_jax.io_utils import atomic_write
+
+_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+             "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+class PlyError(ValueError):
+    """A PLY file that cannot be read as Gaussians; the message names the file."""
+
+
+def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, str]], int]:
+    if fh.readline().strip() != b"ply":
+        raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
+    fmt, count, props, in_vertex = None, None, [], False
+    while True:
+        line = fh.readline()
+        if not line:
+            raise PlyError(f"{path}: truncated header (no end_header)")
+        words = line.decode("ascii", "replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                count = int(words[2])
+            elif count is None:
+                raise PlyError(f"{path}: element '{words[1]}' before 'vertex' is not supported")
+        elif words[0] == "property" and in_vertex:
+            if words[1] == "list":
+                raise PlyError(f"{path}: list property '{words[-1]}' in vertex element")
+            if words[1] not in _TYPES:
+                raise PlyError(f"{path}: unknown property type '{words[1]}'")
+            props.append((words[2], _TYPES[words[1]]))
+    if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
+        raise PlyError(f"{path}: unsupported PLY format {fmt!r}")
+    if count is None:
+        raise PlyError(f"{path}: no vertex element")
+    return fmt, count, props, fh.tell()
+
+
+def read_vertices(path: str | os.PathLike) -> np.ndarray:
+    """The vertex element of a PLY file as a numpy structured array."""
+    path = Path(path)
+    if not path.is_file():
+        raise PlyError(f"{path}: no such file")
+    with open(path, "rb") as fh:
+        fmt, count, props, offset = _parse_header(path, fh)
+        if fmt == "ascii":
+            text = fh.read().decode("ascii", "replace").split()
+            need = count * len(props)
+            if len(text) < need:
+                raise PlyError(f"{path}: truncated, {len(text)} of {need} ascii values")
+            flat = np.array(text[:need], np.float64).reshape(count, len(props))
+            out = np.empty(count, [(n, t) for n, t in props])
+            for i, (name, _) in enumerate(props):
+                out[name] = flat[:, i]
+            return out
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(n, endian + t) for n, t in props])
+    size = path.stat().st_size - offset
+    if size < count * dtype.itemsize:
+        raise PlyError(f"{path}: truncated, {size} bytes of vertex data for {count} vertices "
+                       f"of {dtype.itemsize} bytes")
+    return np.fromfile(path, dtype=dtype, count=count, offset=offset)
+
+
+def _rest_names(names) -> list[str]:
+    rest = [n for n in names if n.startswith("f_rest_")]
+    return sorted(rest, key=lambda n: int(n.split("_")[-1]))
+
+
+def load_ply(path: str | os.PathLike) -> Surfels:
+    """Read a 2DGS (or 3DGS) Gaussian PLY into Surfels (numpy float32 fields).
+
+    3DGS files have three scales: the largest two are kept and a warning says so.
+    """
+    path = Path(path)
+    v = read_vertices(path)
+    names = v.dtype.names
+    missing = [n for n in _REQUIRED if n not in names]
+    if missing:
+        raise PlyError(f"{path}: not a Gaussian PLY, missing properties {missing}")
+    col = lambda n: np.asarray(v[n], np.float32)
+    rest_names = _rest_names(names)
+    if len(rest_names) % 3:
+        raise PlyError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3")
+    k = len(rest_names) // 3
+    try:
+        sh_degree_from_rest(k)
+    except ValueError as exc:
+        raise PlyError(f"{path}: {exc}") from None
+    rest = np.stack([col(n) for n in rest_names], axis=1) if k else np.zeros((len(v), 0), np.float32)
+    sh_rest = rest.reshape(len(v), 3, k).transpose(0, 2, 1)  # channel-major on disk
+    scales = np.stack([col("scale_0"), col("scale_1")], axis=1)
+    if "scale_2" in names:
+        all_scales = np.stack([scales[:, 0], scales[:, 1], col("scale_2")], axis=1)
+        scales = np.sort(all_scales, axis=1)[:, 1:][:, ::-1].copy()
+        warnings.warn(f"{path}: 3DGS file with three scales; kept the largest two per Gaussian "
+                      f"(the surfel plane is spanned by the matching rotation axes only "
+                      f"when scale_2 is the smallest)", stacklevel=2)
+    return Surfels(
+        means=np.stack([col("x"), col("y"), col("z")], axis=1),
+        quats=np.stack([col(f"rot_{i}") for i in range(4)], axis=1),
+        log_scales=scales,
+        opacity_logits=col("opacity"),
+        sh_dc=np.stack([col(f"f_dc_{i}") for i in range(3)], axis=1),
+        sh_rest=np.ascontiguousarray(sh_rest),
+    )
+
+
+def is_3dgs_file(path: str | os.PathLike) -> bool:
+    return "scale_2" in read_vertices(path).dtype.names
+
+
+def surfels_to_vertices(s: Surfels, viewer_compatible: bool = False) -> np.ndarray:
+    s = s.to_numpy()
+    n, k = s.means.shape[0], s.sh_rest.shape[1]
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * k)]
+    names += ["opacity", "scale_0", "scale_1"] + (["scale_2"] if viewer_compatible else [])
+    names += [f"rot_{i}" for i in range(4)]
+    v = np.zeros(n, np.dtype([(name, "<f4") for name in names]))
+    for i, axis in enumerate("xyz"):
+        v[axis] = s.means[:, i]
+    for i in range(3):
+        v[f"f_dc_{i}"] = s.sh_dc[:, i]
+    rest = s.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)
+    for i in range(3 * k):
+        v[f"f_rest_{i}"] = rest[:, i]
+    v["opacity"] = s.opacity_logits
+    v["scale_0"], v["scale_1"] = s.log_scales[:, 0], s.log_scales[:, 1]
+    if viewer_compatible:
+        v["scale_2"] = np.float32(np.log(1e-6))
+    for i in range(4):
+        v[f"rot_{i}"] = s.quats[:, i]
+    return v
+
+
+def save_ply(s: Surfels, path: str | os.PathLike, viewer_compatible: bool = False) -> Path:
+    """Write Surfels as a binary 2DGS PLY (atomically); `viewer_compatible` adds scale_2."""
+    path = Path(path)
+    s = s.to_numpy()
+    bad = [f for f in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+           if not np.all(np.isfinite(getattr(s, f)))]
+    if bad:
+        raise ValueError(f"refusing to write {path}: non-finite values in {bad}")
+    v = surfels_to_vertices(s, viewer_compatible)
+    header = "ply\nformat binary_little_endian 1.0\n"
+    header += f"element vertex {len(v)}\n"
+    header += "".join(f"property float {name}\n" for name in v.dtype.names)
+    header += "end_header\n"
+    with atomic_write(path) as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(v.tobytes())
+    return path
+
+
