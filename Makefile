@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 # Persistent XLA compilation cache: repeated test runs skip most compiles.
-export JAX_COMPILATION_CACHE_DIR ?= $(CURDIR)/.cache/jax
+export JAX_COMPILATION_CACHE_DIR ?= $(HOME)/.cache/ghsplat-jax/xla
 
 .PHONY: install test demo bench clean
 

@@ -1,0 +1,163 @@
+"""Rasterizer speed and memory: forward and forward+backward against the naive baseline.
+
+    python benchmarks/raster_speed.py [--quick] [--sizes 256x256 ...] [--counts 20000 ...]
+
+Scenes are random surfels of typical trained size (3-sigma radius of a few pixels) in front
+of the camera. Every variant is compiled and warmed up first; times are medians of repeats;
+memory is XLA's buffer assignment for the compiled program (arguments + outputs + temporaries).
+Writes benchmarks/results/raster_speed.json and .png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import ghsplat_jax as gs
+from ghsplat_jax.raster import rasterize
+from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
+
+RESULTS = Path(__file__).parent / "results"
+VARIANTS = {
+    "tiled custom_vjp": gs.RasterConfig(),
+    "tiled autodiff": gs.RasterConfig(backward="autodiff"),
+    "naive dense": gs.RasterConfig(backend="dense"),
+}
+DENSE_MEMORY_LIMIT = 6e9  # bytes: the naive baseline is skipped above this predicted size
+
+
+def typical_scene(n: int, seed: int = 0) -> gs.Surfels:
+    r = np.random.default_rng(seed)
+    means = r.uniform([-1.2, -1.2, -0.6], [1.2, 1.2, 0.6], (n, 3))
+    log_scales = r.uniform(np.log(0.004), np.log(0.03), (n, 2))
+    opacity = r.uniform(0.2, 0.9, n)
+    return gs.make_surfels(means, r.normal(size=(n, 4)), log_scales, np.log(opacity / (1 - opacity)),
+                           r.normal(0, 0.5, (n, 3)), r.normal(0, 0.1, (n, 15, 3)), 3)
+
+
+def timed(fn, *args, repeats: int):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    compile_s = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return compile_s, float(np.median(times))
+
+
+def memory_bytes(fn, *args) -> int | None:
+    try:
+        m = fn.lower(*args).compile().memory_analysis()
+        return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
+    except Exception:  # backends without buffer statistics
+        return None
+
+
+def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[dict]:
+    cam = gs.Camera(K=gs.intrinsics(width, height, 60), world_to_cam=gs.look_at([0, -3.0, 0.8], [0, 0, 0]),
+                    width=width, height=height)
+    s = typical_scene(n)
+    pairs, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(gs.RasterConfig())))
+    capacity = capacity_bucket(pairs)
+    slots = max(32, 1 << max(fullest - 1, 0).bit_length())
+    target = jax.random.uniform(jax.random.PRNGKey(0), (height, width, 3))
+    rows = []
+    for name in variants:
+        cfg = VARIANTS[name]
+        row = dict(variant=name, width=width, height=height, surfels=n, pairs=pairs, fullest_tile=fullest,
+                   capacity=capacity)
+        tiles = -(-width // 16) * -(-height // 16)
+        if cfg.backend == "dense" and tiles * slots * 256 * 4 * 12 > DENSE_MEMORY_LIMIT:
+            row["skipped"] = f"predicted dense block {tiles}x{slots}x256 exceeds memory"
+            rows.append(row)
+            print(row)
+            continue
+        forward = jax.jit(lambda s: rasterize(s, cam, cfg, capacity, tile_slots=slots).rgb)
+        loss = lambda s: jnp.sum((rasterize(s, cam, cfg, capacity, tile_slots=slots).rgb - target) ** 2)
+        backward = jax.jit(jax.grad(loss))
+        row["forward_compile_s"], row["forward_s"] = timed(forward, s, repeats=repeats)
+        row["backward_compile_s"], row["forward_backward_s"] = timed(backward, s, repeats=repeats)
+        row["forward_memory_bytes"] = memory_bytes(forward, s)
+        row["forward_backward_memory_bytes"] = memory_bytes(backward, s)
+        # Work actually done: every pair against every pixel of its tile.
+        row["pair_pixel_evals"] = pairs * 256
+        row["forward_evals_per_s"] = pairs * 256 / row["forward_s"]
+        rows.append(row)
+        print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    return rows
+
+
+def chart(rows, path: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, key in zip(axes, ("forward_s", "forward_backward_s")):
+        for name in VARIANTS:
+            pts = [(r["pairs"] * 256, r[key]) for r in rows if r["variant"] == name and key in r]
+            if pts:
+                x, y = zip(*sorted(pts))
+                ax.loglog(x, y, "o-", label=name)
+        ax.set_xlabel("pair-pixel evaluations (pairs x 256)")
+        ax.set_ylabel("seconds (median)")
+        ax.set_title(key.replace("_s", "").replace("_", "+"))
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle(f"2DGS rasterizer on {platform.processor() or platform.machine()} ({jax.devices()[0].platform})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="*", default=["128x128", "256x256", "512x512", "1024x768"])
+    parser.add_argument("--counts", nargs="*", type=int, default=[5000, 20000, 100000, 400000])
+    parser.add_argument("--variants", nargs="*", default=list(VARIANTS))
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="only 256x256 with 20k surfels")
+    parser.add_argument("--out", default=str(RESULTS / "raster_speed"))
+    args = parser.parse_args()
+    if args.quick:
+        args.sizes, args.counts = ["256x256"], [20000]
+    rows = []
+    for size in args.sizes:
+        width, height = (int(v) for v in size.split("x"))
+        for n in args.counts:
+            rows += bench_case(width, height, n, args.repeats, args.variants)
+    summary = {}
+    for r in rows:
+        if r["variant"] == "tiled custom_vjp" and "forward_s" in r:
+            base = next((b for b in rows if b["variant"] == "naive dense" and b["width"] == r["width"]
+                         and b["surfels"] == r["surfels"] and "forward_s" in b), None)
+            if base:
+                summary[f"{r['width']}x{r['height']}/{r['surfels']}"] = {
+                    "forward_speedup_vs_naive": base["forward_s"] / r["forward_s"],
+                    "forward_backward_speedup_vs_naive": base["forward_backward_s"] / r["forward_backward_s"]}
+    result = dict(machine=dict(platform=platform.platform(), processor=platform.processor(),
+                               cpus=os.cpu_count(), device=str(jax.devices()[0]),
+                               jax=jax.__version__),
+                  rows=rows, speedups=summary)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    from ghsplat_jax.io_utils import write_json
+    write_json(out.with_suffix(".json"), result)
+    chart(rows, out.with_suffix(".png"))
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()
