@@ -157,16 +157,23 @@ def resize_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return blocks.mean(axis=(1, 3), dtype=np.float32)
 
 
-def write_image(path: str | Path, image: np.ndarray, dtype: str = "uint8") -> Path:
-    """Write (H,W,C) floats as uint8/uint16/half/float; C=4 is colour with straight alpha.
+def write_image(path: str | Path, image: np.ndarray, dtype: str | None = None) -> Path:
+    """Write (H,W) or (H,W,C) floats in [0,1] as uint8/uint16/half/float, atomically.
 
-    Integer formats (PNG, TIFF) store straight alpha; EXR stores premultiplied colour,
-    so `read_image` gives colour x alpha back from either.
+    dtype defaults to float for EXR and uint8 otherwise. C=4 is colour with straight alpha:
+    integer formats (PNG, TIFF) store straight alpha; EXR stores premultiplied colour, so
+    `read_image` gives colour x alpha back from either. Non-finite values are refused.
     """
+    import os
+    import tempfile
+
     import OpenImageIO as oiio
 
     path = Path(path)
+    dtype = dtype or ("float" if path.suffix.lower() == ".exr" else "uint8")
     image = np.asarray(image, np.float32)
+    if not np.all(np.isfinite(image)):
+        raise ValueError(f"refusing to write {path}: non-finite pixel values")
     if image.ndim == 2:
         image = image[:, :, None]
     formats = {"uint8": oiio.UINT8, "uint16": oiio.UINT16, "half": oiio.HALF, "float": oiio.FLOAT}
@@ -178,50 +185,17 @@ def write_image(path: str | Path, image: np.ndarray, dtype: str = "uint8") -> Pa
         else:
             spec.attribute("oiio:UnassociatedAlpha", 1)
     path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"{path}: cannot write image ({_oiio_message(oiio.geterror())})")
-    ok = out.write_image(image)
-    out.close()
-    if not ok:
-        raise OSError(f"{path}: cannot write image ({_oiio_message(out.geterror())})")
-    return path
-
-
-def write_image(path: str | Path, pixels: np.ndarray) -> Path:
-    """Write an (H,W), (H,W,3) or (H,W,4) image atomically through OpenImageIO.
-
-    Float data goes to EXR as float32; to other formats it is clipped to [0,1] and stored as
-    8-bit. Non-finite values are refused, so NaNs never reach disk.
-    """
-    import os
-    import tempfile
-
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    pixels = np.asarray(pixels)
-    if np.issubdtype(pixels.dtype, np.floating) and not np.all(np.isfinite(pixels)):
-        raise ValueError(f"refusing to write {path}: non-finite pixel values")
-    if path.suffix.lower() == ".exr":
-        data, fmt = pixels.astype(np.float32), oiio.FLOAT
-    elif np.issubdtype(pixels.dtype, np.floating):
-        data, fmt = np.round(np.clip(pixels, 0, 1) * 255).astype(np.uint8), oiio.UINT8
-    else:
-        data, fmt = pixels, (oiio.UINT16 if pixels.dtype == np.uint16 else oiio.UINT8)
-    height, width = data.shape[:2]
-    channels = 1 if data.ndim == 2 else data.shape[2]
-    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, oiio.ImageSpec(width, height, channels, fmt)):
+        if out is None or not out.open(tmp, spec):
             raise OSError(f"{path}: cannot write image ({_oiio_message(oiio.geterror())})")
-        ok = out.write_image(np.ascontiguousarray(data))
+        ok = out.write_image(image)
         out.close()
         if not ok:
             raise OSError(f"{path}: cannot write image ({_oiio_message(out.geterror())})")
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
