@@ -60,3 +60,23 @@ def test_refuses_to_write_nan(tmp_path):
     with pytest.raises(ValueError, match="non-finite"):
         gs.save_ply(bad, tmp_path / "n.ply")
     assert not list(tmp_path.iterdir())
+
+
+def test_3dgs_gaussian_keeps_its_plane():
+    """A 3DGS Gaussian whose smallest axis is x or y becomes a surfel in the plane of the other two."""
+    from ghsplat_jax.core.quaternions import to_rotation_matrix
+    from ghsplat_jax.scene.ply import _surfel_from_3dgs
+
+    r = np.random.default_rng(0)
+    q = r.normal(size=(3, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    scales3 = np.log(np.array([[0.001, 0.2, 0.3], [0.2, 0.001, 0.3], [0.3, 0.2, 0.001]]))
+    s2, q2 = _surfel_from_3dgs(scales3, q)
+    R, R2 = np.asarray(to_rotation_matrix(q)), np.asarray(to_rotation_matrix(q2))
+    for i, dropped in enumerate([0, 1, 2]):
+        kept = [a for a in range(3) if a != dropped]
+        np.testing.assert_allclose(s2[i], scales3[i, kept], rtol=1e-6)
+        # Tangent axes are the kept axes (up to sign); the normal is the dropped axis.
+        for j, axis in enumerate(kept):
+            assert abs(abs(R2[i, :, j] @ R[i, :, axis]) - 1) < 1e-5
+        assert abs(abs(R2[i, :, 2] @ R[i, :, dropped]) - 1) < 1e-5

@@ -7,12 +7,15 @@ that are evaluated in parallel:
   pass 2: per chunk, weights w = alpha T and their sums against the features.
 Every output is then a plain sum over surfels, sum_i w_i f_i, with features
 f = [1, r, g, b, z, nx, ny, nz, m, m^2] (m the NDC depth of the distortion term), plus the
-median depth, which picks one surfel per pixel.
+median depth, which picks one surfel per pixel. Colour and normal are constant per surfel, so
+their sums are one matmul w^T [colour | normal]; only 1, z, m, m^2 vary per pixel.
 
 Backward ("custom_vjp"): d/dalpha_i sum_j w_j f_j = T_i f_i - S_i / (1 - alpha_i), with
 S_i = sum_{j>i} w_j f_j = total - inclusive prefix; the prefix at each chunk's start is kept
 from the forward pass, so the backward is one more parallel pass over the chunks that
-recomputes alpha and differentiates only the per-chunk evaluation.
+recomputes alpha and differentiates only the per-chunk evaluation. Contracted with the
+output cotangent g this needs just one (B, P) plane: g.S_i = g.(total - prefix) - cumsum(w h)
+with h = g.f.
 """
 
 from __future__ import annotations
@@ -67,19 +70,26 @@ def tile_pixels(tile: jax.Array, st: Static) -> jax.Array:
 
 
 def evaluate_chunk(cp: ChunkParams, valid: jax.Array, tile: jax.Array, st: Static):
-    """alpha (B,P), hit depth (B,P) and features (B,P,F) of one chunk on its tile's pixels."""
+    """alpha (B,P) and hit depth (B,P) of one chunk on its tile's pixels (z = near where no hit)."""
     xy = tile_pixels(tile, st)[None]
     alpha, z = evaluate_pixels(cp.M[:, None], cp.center[:, None], cp.opacity[:, None],
                                cp.depth[:, None], xy, st.near, st.lowpass_filter)
     alpha = jnp.where(valid[:, None], alpha, 0.0)
-    hit = alpha > 0
-    z = jnp.where(hit, z, st.near)
-    m = st.far / (st.far - st.near) * (1.0 - st.near / z)
-    b, p = alpha.shape
-    fe = jnp.concatenate([
-        jnp.ones((b, p, 1)), jnp.broadcast_to(cp.color[:, None], (b, p, 3)), z[..., None],
-        jnp.broadcast_to(cp.normal[:, None], (b, p, 3)), m[..., None], (m * m)[..., None]], -1)
-    return alpha, z, jnp.where(hit[..., None], fe, 0.0)
+    return alpha, jnp.where(alpha > 0, z, st.near)
+
+
+def ndc_depth(z: jax.Array, st: Static) -> jax.Array:
+    """The distortion term's depth mapping m(z) (the reference's near/far NDC)."""
+    return st.far / (st.far - st.near) * (1.0 - st.near / z)
+
+
+def pixel_sums(weight, z, color, normal, st: Static) -> jax.Array:
+    """(P, F) sums of w f over a chunk: [A, rgb, z, normal, m, m^2]."""
+    m = ndc_depth(z, st)
+    const = weight.T @ jnp.concatenate([color, normal], axis=1)   # (P, 6)
+    per_pixel = lambda f: jnp.sum(weight * f, axis=0)[:, None]
+    return jnp.concatenate([per_pixel(1.0), const[:, :3], per_pixel(z), const[:, 3:],
+                            per_pixel(m), per_pixel(m * m)], axis=1)
 
 
 def _blend(alpha: jax.Array, log_t0: jax.Array):
@@ -119,17 +129,17 @@ def _map(fn, xs, st: Static, remat: bool):
 
 def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
     def pass1(cp_w, valid_w, tile_w):
-        alpha, _, _ = evaluate_chunk(cp_w, valid_w, tile_w, st)
+        alpha, _ = evaluate_chunk(cp_w, valid_w, tile_w, st)
         return jnp.sum(jnp.log1p(-alpha), axis=0)
 
     log_sum = _map(pass1, (cp, valid, tile), st, remat)
     log_t0 = jnp.maximum(segmented_exclusive_cumsum(log_sum, first), LOG_T_FLOOR)
 
     def pass2(cp_w, valid_w, tile_w, log_t0_w):
-        alpha, z, fe = evaluate_chunk(cp_w, valid_w, tile_w, st)
+        alpha, z = evaluate_chunk(cp_w, valid_w, tile_w, st)
         t_before, included, weight = _blend(alpha, log_t0_w)
         last, has = _last_median(included, t_before)
-        sums = jnp.einsum("bp,bpf->pf", weight, fe)
+        sums = pixel_sums(weight, z, cp_w.color, cp_w.normal, st)
         return sums, jnp.sum(jnp.where(last, z, 0.0), axis=0), has
 
     sums, z_last, has = _map(pass2, (cp, valid, tile, log_t0), st, remat)
@@ -161,17 +171,25 @@ def _custom_bwd(st, residuals, cotangents):
     totals, selected = pad(totals, 0.0), pad(selected, -1)
 
     def chunk_grad(cp_w, valid_w, tile_w, log_t0_w, prefix_w, w):
-        (alpha, z, fe), pullback = jax.vjp(lambda c: evaluate_chunk(c, valid_w, tile_w, st), cp_w)
+        geometry = lambda M, center, opacity, depth: evaluate_chunk(
+            dataclasses.replace(cp_w, M=M, center=center, opacity=opacity, depth=depth), valid_w, tile_w, st)
+        (alpha, z), pullback = jax.vjp(geometry, cp_w.M, cp_w.center, cp_w.opacity, cp_w.depth)
         t_before, included, weight = _blend(alpha, log_t0_w)
-        inclusive = prefix_w[None] + jnp.cumsum(weight[..., None] * fe, axis=0)
-        after = totals[tile_w][None] - inclusive
-        g = g_totals[tile_w][None]
-        d_alpha = jnp.sum(g * (t_before[..., None] * fe - after / (1.0 - alpha)[..., None]), -1)
-        d_alpha = jnp.where(included, d_alpha, 0.0)
-        d_fe = g * weight[..., None]
+        g = g_totals[tile_w]                                              # (P, F)
+        g_a, g_rgb, g_z, g_n, g_m, g_m2 = g[:, 0], g[:, 1:4], g[:, 4], g[:, 5:8], g[:, 8], g[:, 9]
+        m = ndc_depth(z, st)
+        # h = g . f for every (surfel, pixel): the output change per unit weight.
+        h = (g_a + g_z * z + g_m * m + g_m2 * m * m
+             + cp_w.color @ g_rgb.T + cp_w.normal @ g_n.T)
+        after = jnp.sum(g * (totals[tile_w] - prefix_w), axis=1) - jnp.cumsum(weight * h, axis=0)
+        d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
+        dm_dz = st.far / (st.far - st.near) * st.near / (z * z)
+        d_z = weight * (g_z + (g_m + 2.0 * g_m2 * m) * dm_dz)
         last, _ = _last_median(included, t_before)
-        d_z = jnp.where(last & (selected[tile_w] == w)[None], g_median[tile_w][None], 0.0)
-        return pullback((d_alpha, d_z, d_fe))[0]
+        d_z += jnp.where(last & (selected[tile_w] == w)[None], g_median[tile_w][None], 0.0)
+        d_M, d_center, d_opacity, d_depth = pullback((d_alpha, d_z))
+        return ChunkParams(M=d_M, center=d_center, opacity=d_opacity, color=weight @ g_rgb,
+                           normal=weight @ g_n, depth=d_depth)
 
     chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)
     d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, prefix, chunk_id), st, remat=False)

@@ -20,8 +20,8 @@ class RasterConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rgb behind the last surfel
     tile_size: int = 16                    # 8, 16 or 32 pixel tiles
     lowpass_filter: bool = True            # 2DGS screen-space filter rho = min(rho3, 2|x - c|^2)
-    chunk_size: int = 32                   # surfels blended per vectorised step within a tile
-    batch_chunks: int = 16                 # chunks evaluated together (memory vs. loop overhead)
+    chunk_size: int = 16                   # surfels blended per vectorised step within a tile
+    batch_chunks: int = 32                 # chunks evaluated together (memory vs. loop overhead)
     backward: str = "custom_vjp"           # "custom_vjp" (analytic compositing) or "autodiff" (checkpointed)
     backend: str = "tiled"                 # "tiled" (this rasterizer) or "dense" (naive per-tile baseline)
     sh_degree: int | None = None           # active SH bands; None uses every band the data has

@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, _last_median, evaluate_chunk
+from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, _last_median, evaluate_chunk, pixel_sums
 
 
 def composite_dense(st: Static, pair_params: ChunkParams, pair_valid, tile_slots: int,
@@ -21,12 +21,12 @@ def composite_dense(st: Static, pair_params: ChunkParams, pair_valid, tile_slots
     valid = (jnp.arange(tile_slots)[None] < tile_count[:, None]) & pair_valid[jnp.clip(slot, 0, capacity - 1)]
     params = jax.tree_util.tree_map(lambda a: a[jnp.clip(slot, 0, capacity - 1)], pair_params)
     tiles = jnp.arange(st.num_tiles)
-    alpha, z, fe = jax.vmap(lambda c, v, t: evaluate_chunk(c, v, t, st))(params, valid, tiles)
+    alpha, z = jax.vmap(lambda c, v, t: evaluate_chunk(c, v, t, st))(params, valid, tiles)
     one_minus = 1.0 - alpha
     t_before = jnp.cumprod(one_minus, axis=1) / one_minus            # exclusive cumprod
     included = (alpha > 0) & (t_before * one_minus >= T_MIN)
     weight = jnp.where(included, alpha * t_before, 0.0)
-    sums = jnp.einsum("tkp,tkpf->tpf", weight, fe)
+    sums = jax.vmap(lambda w, z, c, n: pixel_sums(w, z, c, n, st))(weight, z, params.color, params.normal)
     last, _ = jax.vmap(_last_median)(included, t_before)
     median = jnp.sum(jnp.where(last, z, 0.0), axis=1)
     return sums, median

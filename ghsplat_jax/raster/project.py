@@ -114,25 +114,27 @@ def evaluate_pixels(M, center, opacity, depth, xy, near: float, lowpass_filter: 
 
     M (...,3,3), center (...,2), opacity (...), depth (...) against xy (...,2).
     Returns (alpha, z), alpha already zero where the hit is invalid or below 1/255.
+    Written on scalar planes (no (...,3) temporaries) so XLA fuses it into one loop.
     """
     x, y = xy[..., 0], xy[..., 1]
-    k = x[..., None] * M[..., 2, :] - M[..., 0, :]
-    l = y[..., None] * M[..., 2, :] - M[..., 1, :]
-    p = jnp.cross(k, l)
+    m = lambda i, j: M[..., i, j]
+    # Pixel planes k = x M[2] - M[0], l = y M[2] - M[1]; (u, v, 1) ~ k x l.
+    k0, k1, k2 = x * m(2, 0) - m(0, 0), x * m(2, 1) - m(0, 1), x * m(2, 2) - m(0, 2)
+    l0, l1, l2 = y * m(2, 0) - m(1, 0), y * m(2, 1) - m(1, 1), y * m(2, 2) - m(1, 2)
+    p0, p1, p2 = k1 * l2 - k2 * l1, k2 * l0 - k0 * l2, k0 * l1 - k1 * l0
     # Edge-on surfels (p2 -> 0) would put the hit at infinity: take the filter branch instead.
-    ok = (jnp.abs(p[..., 0]) < 1e6 * jnp.abs(p[..., 2])) & (jnp.abs(p[..., 1]) < 1e6 * jnp.abs(p[..., 2]))
-    p2 = jnp.where(ok, p[..., 2], 1.0)
-    u, v = jnp.where(ok, p[..., 0], 0.0) / p2, jnp.where(ok, p[..., 1], 0.0) / p2
+    ok = (jnp.abs(p0) < 1e6 * jnp.abs(p2)) & (jnp.abs(p1) < 1e6 * jnp.abs(p2))
+    inv = 1.0 / jnp.where(ok, p2, 1.0)
+    u, v = jnp.where(ok, p0, 0.0) * inv, jnp.where(ok, p1, 0.0) * inv
     rho3 = jnp.where(ok, u * u + v * v, jnp.inf)
     if lowpass_filter:
-        d = xy - center
-        rho2 = 2.0 * jnp.sum(d * d, axis=-1)
+        dx, dy = x - center[..., 0], y - center[..., 1]
+        rho2 = 2.0 * (dx * dx + dy * dy)
     else:
         rho2 = jnp.full_like(rho3, jnp.inf)
     use_hit = rho3 <= rho2
     rho = jnp.where(use_hit, rho3, rho2)
-    hit_z = u * M[..., 2, 0] + v * M[..., 2, 1] + M[..., 2, 2]
-    z = jnp.where(use_hit, hit_z, depth)
+    z = jnp.where(use_hit, u * m(2, 0) + v * m(2, 1) + m(2, 2), depth)
     alpha = jnp.minimum(0.99, opacity * jnp.exp(-0.5 * jnp.where(jnp.isfinite(rho), rho, 1e10)))
     keep = (alpha >= 1.0 / 255.0) & (z >= near)
     return jnp.where(keep, alpha, 0.0), z

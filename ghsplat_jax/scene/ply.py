@@ -116,20 +116,39 @@ def load_ply(path: str | os.PathLike) -> Surfels:
     rest = np.stack([col(n) for n in rest_names], axis=1) if k else np.zeros((len(v), 0), np.float32)
     sh_rest = rest.reshape(len(v), 3, k).transpose(0, 2, 1)  # channel-major on disk
     scales = np.stack([col("scale_0"), col("scale_1")], axis=1)
+    quats = np.stack([col(f"rot_{i}") for i in range(4)], axis=1)
     if "scale_2" in names:
-        all_scales = np.stack([scales[:, 0], scales[:, 1], col("scale_2")], axis=1)
-        scales = np.sort(all_scales, axis=1)[:, 1:][:, ::-1].copy()
-        warnings.warn(f"{path}: 3DGS file with three scales; kept the largest two per Gaussian "
-                      f"(the surfel plane is spanned by the matching rotation axes only "
-                      f"when scale_2 is the smallest)", stacklevel=2)
+        scales, quats = _surfel_from_3dgs(np.stack([scales[:, 0], scales[:, 1], col("scale_2")], axis=1), quats)
+        warnings.warn(f"{path}: 3DGS file with three scales; kept the largest two per Gaussian and "
+                      f"turned its frame so the dropped (smallest) axis is the surfel normal", stacklevel=2)
     return Surfels(
         means=np.stack([col("x"), col("y"), col("z")], axis=1),
-        quats=np.stack([col(f"rot_{i}") for i in range(4)], axis=1),
+        quats=quats,
         log_scales=scales,
         opacity_logits=col("opacity"),
         sh_dc=np.stack([col(f"f_dc_{i}") for i in range(3)], axis=1),
         sh_rest=np.ascontiguousarray(sh_rest),
     )
+
+
+# Right-multiplied rotations that move a 3DGS Gaussian's smallest axis into the normal slot:
+# dropping axis 0 -> columns (1, 2, 0), a 120-degree turn about (1,1,1); dropping axis 1 ->
+# columns (0, 2, -1), a 90-degree turn about x; dropping axis 2 -> unchanged.
+_TO_NORMAL = np.array([[0.5, 0.5, 0.5, 0.5], [np.sqrt(0.5), np.sqrt(0.5), 0, 0], [1.0, 0, 0, 0]])
+
+
+def _surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the two largest of three scales, in axis order, and the matching rotation."""
+    dropped = np.argmin(log_scales3, axis=1)
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[dropped]
+    scales = np.take_along_axis(log_scales3, keep, axis=1)
+    a, b = quats, _TO_NORMAL[dropped]
+    product = np.stack([
+        a[:, 0] * b[:, 0] - a[:, 1] * b[:, 1] - a[:, 2] * b[:, 2] - a[:, 3] * b[:, 3],
+        a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0] + a[:, 2] * b[:, 3] - a[:, 3] * b[:, 2],
+        a[:, 0] * b[:, 2] - a[:, 1] * b[:, 3] + a[:, 2] * b[:, 0] + a[:, 3] * b[:, 1],
+        a[:, 0] * b[:, 3] + a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1] + a[:, 3] * b[:, 0]], axis=1)
+    return scales.astype(np.float32), product.astype(np.float32)
 
 
 def is_3dgs_file(path: str | os.PathLike) -> bool:
