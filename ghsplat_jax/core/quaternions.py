@@ -31,29 +31,27 @@ def to_rotation_matrix(q: jnp.ndarray) -> jnp.ndarray:
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def from_rotation_matrix(R: jnp.ndarray) -> jnp.ndarray:
-    """Unit quaternion w-x-y-z (w >= 0) of rotation matrices (...,3,3); numpy or jax input."""
+def from_rotation_matrix(R) -> "np.ndarray":
+    """Unit quaternions w-x-y-z (w >= 0) of rotation matrices (...,3,3), as float64 numpy.
+
+    Shepperd's method, vectorised: each matrix uses the best-conditioned of four formulas.
+    """
     import numpy as np
 
     R = np.asarray(R, np.float64)
-    flat = R.reshape(-1, 3, 3)
-    out = np.empty((flat.shape[0], 4))
-    for i, m in enumerate(flat):
-        t = np.trace(m)
-        if t > 0:
-            s = np.sqrt(t + 1.0) * 2
-            out[i] = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-            s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-            out[i] = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-        elif m[1, 1] > m[2, 2]:
-            s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-            out[i] = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-        else:
-            s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-            out[i] = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    out *= np.where(out[:, :1] < 0, -1.0, 1.0)
-    return out.reshape(R.shape[:-2] + (4,))
+    m = R.reshape(-1, 3, 3)
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    candidates = np.stack([
+        [1 + m00 + m11 + m22, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]],
+        [m[:, 2, 1] - m[:, 1, 2], 1 + m00 - m11 - m22, m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]],
+        [m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m00 + m11 - m22, m[:, 1, 2] + m[:, 2, 1]],
+        [m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 - m00 - m11 + m22],
+    ]).transpose(2, 0, 1)                                         # (n, case, wxyz)
+    case = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], 1), axis=1)
+    q = candidates[np.arange(len(m)), case]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(R.shape[:-2] + (4,))
 
 
 def multiply(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
