@@ -1,0 +1,159 @@
+"""`ghsplat sfm`: camera poses and sparse points from photos or video, greenhouse-aligned.
+
+    ghsplat sfm --images photos/ --out scene/                      # exhaustive + incremental
+    ghsplat sfm --images walk.mp4 --out scene/ --matching sequential
+    ghsplat sfm --images photos/ --out scene/ --camera-height 1.2  # metric scale
+
+Exit status: 0 when at least --min-registered-fraction of the images registered,
+3 when fewer did (or none), 1 on bad input or settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tomllib
+from pathlib import Path
+
+HELP = "structure from motion (pycolmap) with greenhouse alignment and undistortion"
+
+EXIT_BAD_INPUT = 1
+EXIT_TOO_FEW_REGISTERED = 3
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ghsplat_jax.sfm.pipeline import CAMERA_MODELS, CAMERA_MODES, MAPPERS, MATCHERS
+
+    parser.add_argument("--images", required=True, type=Path,
+                        help="folder of images (subfolders allowed) or a video file")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="output folder: images/, sparse/0/, sfm_report.json")
+    g = parser.add_argument_group("structure from motion")
+    g.add_argument("--matching", choices=MATCHERS, default="exhaustive",
+                   help="exhaustive: every pair (default, as the paper); sequential: each frame "
+                        "against its --overlap neighbours (video); spatial: needs EXIF GPS")
+    g.add_argument("--mapper", choices=MAPPERS, default="incremental",
+                   help="incremental (COLMAP) or global (GLOMAP)")
+    g.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL")
+    g.add_argument("--camera-mode", choices=CAMERA_MODES, default="per-folder",
+                   help="one shared camera per folder (default), one for all, or one per image")
+    g.add_argument("--max-size", type=int, default=1600,
+                   help="longest image side in pixels for extraction and output (0: full size)")
+    g.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
+    g.add_argument("--overlap", type=int, default=10, help="neighbours per frame for sequential matching")
+    g.add_argument("--min-registered-fraction", type=float, default=0.9,
+                   help="exit with status 3 when fewer images than this fraction register")
+    g.add_argument("--no-undistort", action="store_true",
+                   help="skip undistortion (OUT/images, OUT/sparse/0 are then not written)")
+    g.add_argument("--threads", type=int, default=-1, help="CPU threads (-1: all)")
+    g.add_argument("--seed", type=int, default=0, help="random seed for repeatable runs")
+
+    v = parser.add_argument_group("video and frame folders")
+    v.add_argument("--select-frames", action="store_true",
+                   help="thin a folder of video frames (always done for a video file)")
+    v.add_argument("--min-baseline", type=float, default=0.05,
+                   help="optical flow between kept frames, as a fraction of the image diagonal")
+    v.add_argument("--blur-fraction", type=float, default=0.3,
+                   help="drop frames less sharp than this times the median sharpness")
+    v.add_argument("--max-frames", type=int, default=None, help="keep at most this many frames")
+
+    a = parser.add_argument_group("alignment")
+    a.add_argument("--align", choices=("greenhouse", "none"), default="greenhouse",
+                   help="greenhouse: z up, row along +x, open end toward +x")
+    a.add_argument("--align-config", type=Path, default=None,
+                   help="TOML or JSON with any of: rotation (3x3, new_from_old), yaw_deg, flip, "
+                        "scale, camera_height, known_distance ([image_a, image_b, metres])")
+    a.add_argument("--align-rotation", type=float, nargs=9, metavar="R", default=None,
+                   help="manual 3x3 rotation new_from_old, row-major (replaces the estimate)")
+    a.add_argument("--align-yaw", type=float, default=None, help="extra turn about z, degrees")
+    a.add_argument("--align-flip", action="store_true", help="turn 180 degrees about z")
+    a.add_argument("--scale", type=float, default=None, help="explicit metric scale factor")
+    a.add_argument("--camera-height", type=float, default=None,
+                   help="true mean camera height above the ground in metres (sets the scale)")
+    a.add_argument("--known-distance", nargs=3, metavar=("IMAGE_A", "IMAGE_B", "METRES"),
+                   default=None, help="true distance between two cameras (sets the scale)")
+
+    parser.add_argument("--verbose", action="store_true", help="show pycolmap's own log")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _load_align_config(path: Path | None) -> dict:
+    if path is None:
+        return {}
+    import json
+
+    try:
+        text = path.read_text()
+        config = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except FileNotFoundError as exc:
+        raise ValueError(f"--align-config {path}: no such file") from exc
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"--align-config {path}: cannot parse ({exc})") from exc
+    config = config.get("align", config)  # allow an [align] table
+    allowed = {"rotation", "yaw_deg", "flip", "scale", "camera_height", "known_distance"}
+    unknown = set(config) - allowed
+    if unknown:
+        raise ValueError(f"--align-config {path}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    return config
+
+
+def build_options(args: argparse.Namespace):
+    """SfmOptions from parsed arguments (the config file first, flags override it)."""
+    import numpy as np
+
+    from ghsplat_jax.sfm.align import AlignOptions
+    from ghsplat_jax.sfm.frames import FrameOptions
+    from ghsplat_jax.sfm.pipeline import SfmOptions
+
+    config = _load_align_config(args.align_config)
+    rotation = args.align_rotation if args.align_rotation is not None else config.get("rotation")
+    known = args.known_distance or config.get("known_distance")
+    if known is not None:
+        if len(known) != 3:
+            raise ValueError("known_distance needs [image_a, image_b, metres]")
+        try:
+            known = (str(known[0]), str(known[1]), float(known[2]))
+        except ValueError as exc:
+            raise ValueError(f"--known-distance: {known[2]!r} is not a distance in metres") from exc
+    align = AlignOptions(
+        rotation=None if rotation is None else np.asarray(rotation, float).reshape(3, 3),
+        yaw_deg=float(args.align_yaw if args.align_yaw is not None else config.get("yaw_deg", 0.0)),
+        flip=bool(args.align_flip or config.get("flip", False)),
+        scale=args.scale if args.scale is not None else config.get("scale"),
+        camera_height=args.camera_height if args.camera_height is not None else config.get("camera_height"),
+        seed=args.seed,
+    )
+    frames = FrameOptions(min_baseline=args.min_baseline, blur_fraction=args.blur_fraction,
+                          max_frames=args.max_frames)
+    return SfmOptions(
+        matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
+        camera_mode=args.camera_mode, max_size=args.max_size or None,
+        max_features=args.max_features, sequential_overlap=args.overlap,
+        min_registered_fraction=args.min_registered_fraction, select_frames=args.select_frames,
+        frame_options=frames, align=args.align, align_options=align,
+        known_distance_names=known, undistort=not args.no_undistort,
+        num_threads=args.threads, seed=args.seed, progress=not args.quiet,
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    import pycolmap
+
+    from ghsplat_jax.sfm.pipeline import SfmError, run_sfm
+    from ghsplat_jax.sfm.report import summary_text
+
+    pycolmap.logging.minloglevel = 0 if args.verbose else 2  # 2: errors only
+    try:
+        options = build_options(args)
+        report = run_sfm(args.images, args.out, options)
+    except (SfmError, ValueError) as exc:
+        print(f"ghsplat sfm: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(summary_text(report))
+    print(f"Report: {Path(args.out) / 'sfm_report.json'}")
+    if report["status"] == "ok":
+        return 0
+    needed = options.min_registered_fraction
+    print(f"ghsplat sfm: only {report.get('num_registered', 0)} of {report['num_images']} images "
+          f"registered (below --min-registered-fraction {needed})", file=sys.stderr)
+    return EXIT_TOO_FEW_REGISTERED

@@ -1,0 +1,419 @@
+"""Structure from motion with pycolmap (CPU, offline), then greenhouse alignment and undistortion.
+
+Stages: frame selection (video input) -> SIFT extraction -> matching (exhaustive,
+sequential or spatial) -> mapping (incremental or global/GLOMAP) -> alignment ->
+undistortion. Output layout (the one 3DGS/2DGS tools expect):
+
+    OUT/images/            undistorted images (PINHOLE), ready for training
+    OUT/sparse/0/          COLMAP binary model of those images, aligned
+    OUT/distorted/         database.db and the aligned model before undistortion
+    OUT/frames/            selected frames (video input only)
+    OUT/sfm_report.json    counts, unregistered images, errors, alignment, timings
+
+Only SIFT and classical pair generators are used: learned features and
+vocabulary-tree loop detection download models and abort offline.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ghsplat_jax.io_utils import write_json
+from ghsplat_jax.sfm import frames as frames_mod
+from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
+from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
+
+MATCHERS = ("exhaustive", "sequential", "spatial")
+MAPPERS = ("incremental", "global")
+CAMERA_MODES = ("per-folder", "single", "per-image", "auto")
+# Models the undistorter turns into PINHOLE (fisheye models included).
+CAMERA_MODELS = (
+    "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+    "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV",
+)
+
+
+class SfmError(RuntimeError):
+    """Bad input or an unusable pipeline setting; the message names the file and the problem."""
+
+
+@dataclasses.dataclass
+class SfmOptions:
+    matching: str = "exhaustive"  # every pair, as the paper does; "sequential" for video
+    mapper: str = "incremental"  # or "global" (GLOMAP in pycolmap >= 3.12)
+    camera_model: str = "SIMPLE_RADIAL"  # COLMAP model fitted during mapping
+    camera_mode: str = "per-folder"  # one shared camera per folder of images
+    max_size: int | None = 1600  # longest side for extraction and undistorted output (None: full)
+    max_features: int = 8192  # SIFT features per image
+    sequential_overlap: int = 10  # neighbours matched per frame in sequential matching
+    min_registered_fraction: float = 0.9  # below this the run counts as failed
+    select_frames: bool = False  # thin a frame folder like a video (always on for video files)
+    frame_options: frames_mod.FrameOptions = dataclasses.field(default_factory=frames_mod.FrameOptions)
+    align: str = "greenhouse"  # or "none"
+    align_options: AlignOptions = dataclasses.field(default_factory=AlignOptions)
+    known_distance_names: tuple[str, str, float] | None = None  # (image a, image b, metres)
+    undistort: bool = True  # write OUT/images + OUT/sparse/0 as PINHOLE
+    num_threads: int = -1  # -1: all cores
+    seed: int = 0  # pycolmap RANSAC/mapper seed, for repeatable runs
+    progress: bool = True  # tqdm bars
+
+    def validate(self) -> None:
+        for name, value, allowed in (
+            ("matching", self.matching, MATCHERS), ("mapper", self.mapper, MAPPERS),
+            ("camera_mode", self.camera_mode, CAMERA_MODES),
+            ("camera_model", self.camera_model, CAMERA_MODELS),
+            ("align", self.align, ("greenhouse", "none")),
+        ):
+            if value not in allowed:
+                raise SfmError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+        if not 0.0 <= self.min_registered_fraction <= 1.0:
+            raise SfmError(f"min_registered_fraction must be in [0, 1], got {self.min_registered_fraction}")
+        if self.max_size is not None and self.max_size < 32:
+            raise SfmError(f"max_size must be at least 32 pixels, got {self.max_size}")
+
+
+@contextlib.contextmanager
+def _timed(timings: dict, name: str, bar=None):
+    if bar is not None:
+        bar.set_description(f"sfm: {name}")
+    start = time.perf_counter()
+    yield
+    timings[name] = round(time.perf_counter() - start, 3)
+    if bar is not None:
+        bar.update(1)
+
+
+def _replace_dir(new: Path, target: Path) -> None:
+    """Move `new` to `target`, replacing it; a reader sees the old or the new folder."""
+    old = target.with_name(f".{target.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if target.exists():
+        os.replace(target, old)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(new, target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def write_model(reconstruction, target: Path) -> None:
+    """Write a COLMAP binary model to `target` atomically (temp folder + rename)."""
+    tmp = target.with_name(f".{target.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    reconstruction.write_binary(str(tmp))
+    _replace_dir(tmp, target)
+
+
+# ---------------------------------------------------------------------------- input
+
+
+def resolve_input(
+    images: Path, out: Path, options: SfmOptions, timings: dict
+) -> tuple[Path, list[str], dict]:
+    """(image root, image names in capture order, frame-selection report)."""
+    images = Path(images)
+    if not images.exists():
+        raise SfmError(f"--images {images}: no such file or folder")
+    if images.is_dir():
+        if out.resolve().is_relative_to(images.resolve()):
+            raise SfmError(f"--out {out} lies inside --images {images}: choose another folder")
+        names = frames_mod.list_images(images)
+        if not names:
+            suffixes = ", ".join(sorted(frames_mod.IMAGE_SUFFIXES))
+            raise SfmError(f"--images {images}: no image files ({suffixes})")
+        if not options.select_frames:
+            return images, names, {}
+    elif not frames_mod.is_video(images):
+        raise SfmError(
+            f"--images {images}: not a folder of images or a video file "
+            f"({', '.join(sorted(frames_mod.VIDEO_SUFFIXES))})"
+        )
+
+    from tqdm import tqdm
+
+    start = time.perf_counter()
+    try:
+        with tqdm(desc="scoring frames", unit="frame", disable=not options.progress) as bar:
+            sharp, step = frames_mod.score_frames(images, options.frame_options, bar)
+    except ValueError as exc:
+        raise SfmError(str(exc)) from exc
+    keep = frames_mod.select_frames(sharp, step, options.frame_options)
+    if images.is_dir():
+        root, selected = images, [names[i] for i in keep]
+    else:
+        root = out / "frames"
+        shutil.rmtree(root, ignore_errors=True)
+        selected = frames_mod.write_video_frames(images, keep, root)
+    timings["frame_selection"] = round(time.perf_counter() - start, 3)
+    info = {
+        "num_frames": int(len(sharp)),
+        "num_selected": len(selected),
+        "selected_indices": [int(i) for i in keep],
+        "min_baseline": options.frame_options.min_baseline,
+        "median_sharpness": float(np.median(sharp)),
+    }
+    return root, selected, info
+
+
+# ---------------------------------------------------------------------------- pycolmap stages
+
+
+def extract(database: Path, root: Path, names: list[str], options: SfmOptions) -> list[str]:
+    """SIFT features of `names` into `database`; returns the names pycolmap could not read."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = options.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.type = pycolmap.FeatureExtractorType.SIFT
+    extraction.max_image_size = options.max_size or -1
+    extraction.num_threads = options.num_threads
+    extraction.sift.max_num_features = options.max_features
+    mode = getattr(pycolmap.CameraMode, options.camera_mode.replace("-", "_").upper())
+    pycolmap.extract_features(
+        database, root, image_names=names, camera_mode=mode, reader_options=reader,
+        extraction_options=extraction, device=pycolmap.Device.cpu,
+    )
+    db = pycolmap.Database.open(str(database))
+    try:
+        read = {image.name for image in db.read_all_images()}
+    finally:
+        db.close()
+    return [name for name in names if name not in read]
+
+
+def match(database: Path, options: SfmOptions) -> None:
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = options.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = options.seed
+    common = dict(matching_options=matching, verification_options=verification,
+                  device=pycolmap.Device.cpu)
+    if options.matching == "exhaustive":
+        pycolmap.match_exhaustive(database, **common)
+    elif options.matching == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_overlap
+        pairing.quadratic_overlap = True
+        pairing.loop_detection = False  # needs a vocabulary tree (a download): never offline
+        pycolmap.match_sequential(database, pairing_options=pairing, **common)
+    else:
+        db = pycolmap.Database.open(str(database))
+        try:
+            priors = db.num_pose_priors()
+        finally:
+            db.close()
+        if priors == 0:
+            raise SfmError(
+                f"--matching spatial needs position priors (EXIF GPS), and none of the images in "
+                f"{database} has one: use --matching exhaustive or sequential"
+            )
+        pycolmap.match_spatial(database, **common)
+
+
+def map_images(database: Path, root: Path, models_dir: Path, options: SfmOptions) -> dict:
+    """All reconstructions the mapper produced, {index: Reconstruction}."""
+    import pycolmap
+
+    pycolmap.set_random_seed(options.seed)
+    shutil.rmtree(models_dir, ignore_errors=True)
+    models_dir.mkdir(parents=True)
+    if options.mapper == "incremental":
+        pipeline = pycolmap.IncrementalPipelineOptions()
+        pipeline.num_threads = options.num_threads
+        pipeline.random_seed = options.seed
+        return pycolmap.incremental_mapping(database, root, models_dir, options=pipeline)
+    if not hasattr(pycolmap, "global_mapping"):
+        raise SfmError(
+            f"--mapper global needs pycolmap >= 3.12 (GLOMAP built in); this is pycolmap "
+            f"{pycolmap.__version__}: use --mapper incremental"
+        )
+    pipeline = pycolmap.GlobalPipelineOptions()
+    pipeline.num_threads = options.num_threads
+    pipeline.random_seed = options.seed
+    pipeline.mapper.global_positioning.use_gpu = False
+    pipeline.mapper.bundle_adjustment.ceres.use_gpu = False
+    return pycolmap.global_mapping(database, root, models_dir, options=pipeline)
+
+
+def cameras_and_points(reconstruction) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Registered image names in name (capture) order, their world_to_cam (N,4,4), points (M,3)."""
+    images = sorted(
+        (reconstruction.images[i] for i in reconstruction.reg_image_ids()), key=lambda im: im.name
+    )
+    w2c = np.tile(np.eye(4), (len(images), 1, 1))
+    for k, image in enumerate(images):
+        w2c[k, :3] = image.cam_from_world().matrix()
+    points = np.array([p.xyz for p in reconstruction.points3D.values()]).reshape(-1, 3)
+    return [im.name for im in images], w2c, points
+
+
+def align(reconstruction, options: SfmOptions) -> dict:
+    """Apply the greenhouse alignment to `reconstruction` in place; returns its report."""
+    import pycolmap
+
+    names, w2c, points = cameras_and_points(reconstruction)
+    align_options = options.align_options
+    if options.known_distance_names is not None:
+        a, b, metres = options.known_distance_names
+        missing = [n for n in (a, b) if n not in names]
+        if missing:
+            raise SfmError(f"--known-distance: image(s) {', '.join(missing)} not registered")
+        align_options = dataclasses.replace(
+            align_options, known_distance=(names.index(a), names.index(b), float(metres))
+        )
+    try:
+        alignment = estimate_alignment(w2c, points, align_options)
+    except ValueError as exc:
+        raise SfmError(f"greenhouse alignment: {exc}") from exc
+    reconstruction.transform(
+        pycolmap.Sim3d(alignment.scale, pycolmap.Rotation3d(alignment.rotation), alignment.translation)
+    )
+    return {"method": "greenhouse", **alignment.to_json()}
+
+
+def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> None:
+    """OUT/images + OUT/sparse/0 as PINHOLE from the distorted model."""
+    import pycolmap
+
+    tmp = out / ".undistort.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    undistort_options = pycolmap.UndistortCameraOptions()
+    undistort_options.max_image_size = options.max_size or -1
+    pycolmap.undistort_images(
+        tmp, model_dir, root, undistort_options=undistort_options,
+        num_threads=options.num_threads,
+    )
+    _replace_dir(tmp / "images", out / "images")
+    _replace_dir(tmp / "sparse", out / "sparse" / "0")
+    shutil.rmtree(tmp, ignore_errors=True)  # stereo/ and scripts are for COLMAP's MVS
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict:
+    """Run the whole pipeline; writes OUT/sfm_report.json and returns the report.
+
+    report["status"] is "ok", "partial" (fewer than min_registered_fraction registered;
+    outputs still written) or "failed" (no reconstruction).
+    """
+    import pycolmap
+    from tqdm import tqdm
+
+    options.validate()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    root, names, frame_info = resolve_input(Path(images), out, options, timings)
+    if len(names) < 2:
+        raise SfmError(f"--images {images}: need at least 2 images, found {len(names)}")
+
+    distorted = out / "distorted"
+    distorted.mkdir(parents=True, exist_ok=True)
+    database = distorted / "database.db"
+    for stale in (database, database.with_name("database.db-wal"), database.with_name("database.db-shm")):
+        stale.unlink(missing_ok=True)
+
+    report = {
+        "input": str(Path(images).resolve()),
+        "image_root": str(root.resolve()),
+        "options": _options_json(options),
+        "versions": {"pycolmap": pycolmap.__version__, "colmap": pycolmap.COLMAP_version},
+        "num_images": len(names),
+    }
+    if frame_info:
+        report["frame_selection"] = frame_info
+
+    stages = 3 + (options.align == "greenhouse") + options.undistort
+    with tqdm(total=stages, unit="stage", disable=not options.progress) as bar:
+        with _timed(timings, "extraction", bar):
+            unreadable = extract(database, root, names, options)
+        if unreadable:
+            report["unreadable_images"] = unreadable
+        if len(unreadable) > len(names) - 2:
+            raise SfmError(f"--images {images}: pycolmap could read only {len(names) - len(unreadable)} "
+                           f"of {len(names)} images (unreadable: {', '.join(unreadable[:10])})")
+        with _timed(timings, "matching", bar):
+            match(database, options)
+        with _timed(timings, "mapping", bar):
+            models = map_images(database, root, distorted / "models", options)
+        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        report.update(_registration(models, best, names))
+        model_dir = distorted / "sparse" / "0"
+        if best is None:  # leave no earlier run's model beside a report that says "failed"
+            for stale in (out / "images", out / "sparse" / "0", model_dir):
+                shutil.rmtree(stale, ignore_errors=True)
+        else:
+            report.update(reconstruction_stats(best))
+            report["alignment"] = {"method": "none"}
+            if options.align == "greenhouse":
+                write_model(best, model_dir)  # kept unaligned should the alignment fail
+                with _timed(timings, "alignment", bar):
+                    try:
+                        report["alignment"] = align(best, options)
+                    except SfmError as exc:
+                        raise SfmError(f"{exc} (the unaligned model is in {model_dir})") from exc
+            write_model(best, model_dir)
+            if options.undistort:
+                with _timed(timings, "undistortion", bar):
+                    undistort(model_dir, root, out, options)
+                report["cameras"] = _camera_summary(out / "sparse" / "0")
+    shutil.rmtree(distorted / "models", ignore_errors=True)
+
+    if best is None:
+        report["status"] = "failed"
+    elif report["registered_fraction"] < options.min_registered_fraction:
+        report["status"] = "partial"
+    else:
+        report["status"] = "ok"
+    if report["status"] != "ok" or report["unregistered_images"]:
+        report["advice"] = failure_advice(options, len(names), report["num_registered"])
+    timings["total"] = round(time.perf_counter() - start, 3)
+    report["timings_s"] = timings
+    write_json(out / "sfm_report.json", report)
+    return report
+
+
+def _registration(models: dict, best, names: list[str]) -> dict:
+    registered = set() if best is None else {best.images[i].name for i in best.reg_image_ids()}
+    return {
+        "num_registered": len(registered),
+        "registered_fraction": round(len(registered) / len(names), 4),
+        "unregistered_images": [n for n in names if n not in registered],
+        "num_reconstructions": len(models),
+        "reconstruction_sizes": sorted((r.num_reg_images() for r in models.values()), reverse=True),
+    }
+
+
+def _camera_summary(model_dir: Path) -> list[dict]:
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(model_dir))
+    return [
+        {"camera_id": int(cid), "model": cam.model.name, "width": int(cam.width),
+         "height": int(cam.height), "params": [float(p) for p in cam.params]}
+        for cid, cam in sorted(rec.cameras.items())
+    ]
+
+
+def _options_json(options: SfmOptions) -> dict:
+    def plain(value):
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if dataclasses.is_dataclass(value):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, (tuple, list)):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(options)

@@ -1,0 +1,94 @@
+"""What the SfM report says: reconstruction statistics and plain advice when images fail."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _finite(value) -> float | None:
+    """A JSON-safe float: None instead of NaN or inf (reports never hold NaNs)."""
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def track_length_stats(lengths: np.ndarray) -> dict:
+    if len(lengths) == 0:
+        return {"mean": None, "median": None, "min": None, "max": None, "p90": None}
+    return {
+        "mean": _finite(np.mean(lengths)),
+        "median": _finite(np.median(lengths)),
+        "min": int(np.min(lengths)),
+        "max": int(np.max(lengths)),
+        "p90": _finite(np.percentile(lengths, 90)),
+    }
+
+
+def reconstruction_stats(reconstruction) -> dict:
+    """Point count, mean reprojection error (px), track lengths, observations per image."""
+    lengths = np.array([p.track.length() for p in reconstruction.points3D.values()], int)
+    return {
+        "num_points3D": int(reconstruction.num_points3D()),
+        "mean_reprojection_error_px": _finite(reconstruction.compute_mean_reprojection_error()),
+        "track_length": track_length_stats(lengths),
+        "mean_observations_per_image": _finite(reconstruction.compute_mean_observations_per_reg_image()),
+    }
+
+
+def failure_advice(options, num_images: int, num_registered: int) -> list[str]:
+    """What to try when SfM registered too few images, most likely fix first."""
+    tips = []
+    if options.matching != "sequential":
+        tips.append("video or an ordered walk along the row: try --matching sequential "
+                    f"(each frame against its {options.sequential_overlap} neighbours)")
+    else:
+        tips.append("try --matching exhaustive (every pair) or raise --overlap")
+    tips.append("capture with more overlap between neighbouring views (60-80%); for video "
+                "lower --min-baseline so more frames are kept")
+    if options.max_size is None or options.max_size > 1000:
+        tips.append("try smaller images, e.g. --max-size 1000 (less noise, fewer foliage mismatches)")
+    else:
+        tips.append("try larger images (raise --max-size) or more features (--max-features)")
+    tips.append("try the other mapper (--mapper global or --mapper incremental)")
+    if options.camera_mode != "per-image":
+        tips.append("if the images come from different cameras or zoom settings, use --camera-mode per-image")
+    if num_registered == 0 and num_images < 5:
+        tips.insert(0, f"only {num_images} images: SfM needs several overlapping views")
+    return tips
+
+
+def summary_text(report: dict) -> str:
+    """A few plain lines for the terminal."""
+    n, k = report["num_images"], report.get("num_registered", 0)
+    lines = []
+    frames = report.get("frame_selection")
+    if frames:
+        lines.append(f"Selected {frames['num_selected']} of {frames['num_frames']} frames "
+                     f"(sharp, at least {frames['min_baseline']} of the diagonal apart).")
+    lines.append(f"Registered {k} of {n} images ({100.0 * k / max(n, 1):.0f}%).")
+    if report.get("unreadable_images"):
+        lines.append(f"Could not read: {', '.join(report['unreadable_images'][:20])}.")
+    missing = report.get("unregistered_images", [])
+    if missing:
+        shown = ", ".join(missing[:20]) + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+        lines.append(f"Not registered: {shown}.")
+    if report.get("num_reconstructions", 0) > 1:
+        lines.append(f"The images split into {report['num_reconstructions']} separate models "
+                     f"(sizes {report['reconstruction_sizes']}); the largest was kept.")
+    if report.get("mean_reprojection_error_px") is not None:
+        lines.append(f"{report['num_points3D']} points, mean reprojection error "
+                     f"{report['mean_reprojection_error_px']:.3f} px, mean track length "
+                     f"{report['track_length']['mean']:.2f}.")
+    alignment = report.get("alignment", {})
+    if alignment.get("method") == "greenhouse":
+        lines.append(f"Aligned: up from {alignment['up_source']}, row from {alignment['row_source']}, "
+                     f"row end by {alignment['sign_rule']}, scale {alignment['scale']:.4g} "
+                     f"({alignment['scale_source']}).")
+    if report.get("advice"):
+        lines.append("What to try:")
+        lines.extend(f"  - {tip}" for tip in report["advice"])
+    timings = report.get("timings_s", {})
+    if timings:
+        lines.append("Timings: " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
+    return "\n".join(lines)
