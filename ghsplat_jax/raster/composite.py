@@ -28,6 +28,8 @@ import jax.numpy as jnp
 
 from ghsplat_jax.raster.project import evaluate_pixels
 
+# Columns of the per-tile sums: weight, colour, depth, normal, NDC depth and its square.
+A, RGB, Z, NORMAL, M1, M2 = 0, slice(1, 4), 4, slice(5, 8), 8, 9
 NUM_FEATURES = 10
 T_MIN = 1e-4          # stop before a surfel would take transmittance below this
 LOG_T_FLOOR = -60.0   # transmittance far below T_MIN: keeps sums finite in float32

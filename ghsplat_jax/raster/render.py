@@ -63,9 +63,9 @@ def _safe_divide(num, den):
 def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
              capacity: int) -> RenderOutput:
     img = _image(totals, grid, cam.width, cam.height)
-    a = img[..., 0]
+    a = img[..., composite.A]
     background = jnp.asarray(cfg.background, jnp.float32)
-    d1, d2 = img[..., 8], img[..., 9]
+    d1, d2 = img[..., composite.M1], img[..., composite.M2]
     radii = jnp.where(p.visible, jnp.max(p.box_max - p.box_min, axis=1) / 2, 0.0)
     stats = RasterStats(
         num_pairs=layout.num_pairs, capacity=jnp.int32(capacity),
@@ -75,9 +75,10 @@ def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected,
         num_culled_near=jnp.sum(p.culled_near).astype(jnp.int32),
         max_tile_pairs=jnp.max(layout.tile_count))
     return RenderOutput(
-        rgb=img[..., 1:4] + (1.0 - a[..., None]) * background, alpha=a,
-        depth=_safe_divide(img[..., 4], a), median_depth=_image(median, grid, cam.width, cam.height),
-        normal=img[..., 5:8], distortion=jnp.maximum(a * d2 - d1 * d1, 0.0),
+        rgb=img[..., composite.RGB] + (1.0 - a[..., None]) * background, alpha=a,
+        depth=_safe_divide(img[..., composite.Z], a), median_depth=_image(median, grid, cam.width, cam.height),
+        # sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2; rounding can make it slightly negative.
+        normal=img[..., composite.NORMAL], distortion=jnp.maximum(a * d2 - d1 * d1, 0.0),
         visible=p.visible, radii=radii, stats=stats)
 
 
