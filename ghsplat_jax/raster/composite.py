@@ -11,11 +11,11 @@ median depth, which picks one surfel per pixel. Colour and normal are constant p
 their sums are one matmul w^T [colour | normal]; only 1, z, m, m^2 vary per pixel.
 
 Backward ("custom_vjp"): d/dalpha_i sum_j w_j f_j = T_i f_i - S_i / (1 - alpha_i), with
-S_i = sum_{j>i} w_j f_j = total - inclusive prefix; the prefix at each chunk's start is kept
-from the forward pass, so the backward is one more parallel pass over the chunks that
-recomputes alpha and differentiates only the per-chunk evaluation. Contracted with the
-output cotangent g this needs just one (B, P) plane: g.S_i = g.(total - prefix) - cumsum(w h)
-with h = g.f.
+S_i = sum_{j>i} w_j f_j = total - inclusive prefix. Contracted with the output cotangent g
+this needs one (B, P) plane per chunk: g.S_i = g.(total - prefix) - cumsum(w h), h = g.f,
+where g.prefix at each chunk's start is a segmented scan of g.(chunk sums kept from the
+forward pass). The backward is then one more parallel pass over the chunks that recomputes
+alpha and differentiates only the per-chunk evaluation.
 """
 
 from __future__ import annotations
@@ -161,18 +161,22 @@ def composite_custom(st: Static, cp: ChunkParams, valid, tile, first):
 
 def _custom_fwd(st, cp, valid, tile, first):
     outputs, (log_t0, sums, totals, selected) = _forward(st, cp, valid, tile, first, remat=False)
-    prefix = segmented_exclusive_cumsum(sums, first)
-    return outputs, (cp, valid, tile, log_t0, prefix, totals, selected)
+    return outputs, (cp, valid, tile, first, log_t0, sums, totals, selected)
 
 
 def _custom_bwd(st, residuals, cotangents):
-    cp, valid, tile, log_t0, prefix, totals, selected = residuals
+    cp, valid, tile, first, log_t0, sums, totals, selected = residuals
     g_totals, g_median = cotangents
     pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
     g_totals, g_median = pad(g_totals, 0.0), pad(g_median, 0.0)
     totals, selected = pad(totals, 0.0), pad(selected, -1)
+    # Only g . (total - prefix) is needed per chunk and pixel, so the segmented scan runs on
+    # one plane instead of all features.
+    g_chunk = g_totals[tile]                                               # (W, P, F)
+    after_start = (jnp.sum(g_chunk * totals[tile], axis=-1)
+                   - segmented_exclusive_cumsum(jnp.sum(g_chunk * sums, axis=-1), first))
 
-    def chunk_grad(cp_w, valid_w, tile_w, log_t0_w, prefix_w, w):
+    def chunk_grad(cp_w, valid_w, tile_w, log_t0_w, after_start_w, w):
         geometry = lambda M, center, opacity, depth: evaluate_chunk(
             dataclasses.replace(cp_w, M=M, center=center, opacity=opacity, depth=depth), valid_w, tile_w, st)
         (alpha, z), pullback = jax.vjp(geometry, cp_w.M, cp_w.center, cp_w.opacity, cp_w.depth)
@@ -183,7 +187,7 @@ def _custom_bwd(st, residuals, cotangents):
         # h = g . f for every (surfel, pixel): the output change per unit weight.
         h = (g_a + g_z * z + g_m * m + g_m2 * m * m
              + cp_w.color @ g_rgb.T + cp_w.normal @ g_n.T)
-        after = jnp.sum(g * (totals[tile_w] - prefix_w), axis=1) - jnp.cumsum(weight * h, axis=0)
+        after = after_start_w - jnp.cumsum(weight * h, axis=0)
         d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
         dm_dz = st.far / (st.far - st.near) * st.near / (z * z)
         d_z = weight * (g_z + (g_m + 2.0 * g_m2 * m) * dm_dz)
@@ -194,7 +198,7 @@ def _custom_bwd(st, residuals, cotangents):
                            normal=weight @ g_n, depth=d_depth)
 
     chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)
-    d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, prefix, chunk_id), st, remat=False)
+    d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, after_start, chunk_id), st, remat=False)
     return d_cp, None, None, None
 
 
