@@ -1,0 +1,168 @@
+"""Camera sensors: a pinhole model with its CameraInfo, and a renderer that compiles
+once per image size (cameras of one size share it and render together as a vmap).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from ghsplat_jax.sim import frames
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraModel:
+    """An undistorted pinhole camera whose images are in `frame_id` (an optical frame)."""
+
+    frame_id: str
+    width: int
+    height: int
+    K: tuple[float, ...]  # 3x3 row-major
+
+    def __post_init__(self):
+        K = np.asarray(self.K, np.float64).reshape(-1)
+        if K.size != 9 or not np.all(np.isfinite(K)):
+            raise ValueError("K must be 9 finite numbers")
+        object.__setattr__(self, "K", tuple(float(v) for v in K))
+        if not self.frame_id or not isinstance(self.frame_id, str):
+            raise ValueError("camera needs a frame id")
+        if not (8 <= self.width <= 8192 and 8 <= self.height <= 8192):
+            raise ValueError(f"image size {self.width}x{self.height} out of range 8..8192")
+        k = self.matrix
+        if not (k[0, 0] > 0 and k[1, 1] > 0 and k[2, 2] == 1 and k[1, 0] == k[2, 0] == k[2, 1] == 0):
+            raise ValueError("K must be upper triangular with positive focal lengths and K[2,2] = 1")
+
+    @property
+    def matrix(self) -> np.ndarray:
+        return np.asarray(self.K, np.float64).reshape(3, 3)
+
+    @classmethod
+    def from_fov(cls, frame_id: str, width: int, height: int, fov_x_deg: float) -> "CameraModel":
+        from ghsplat_jax.core.camera import intrinsics
+
+        return cls(frame_id, int(width), int(height), tuple(intrinsics(width, height, fov_x_deg).reshape(-1)))
+
+    @classmethod
+    def from_camera_info(cls, msg) -> "CameraModel":
+        if any(abs(float(v)) > 1e-12 for v in msg.d):
+            raise ValueError("only undistorted cameras can be rendered (D must be zero)")
+        return cls(msg.header.frame_id, int(msg.width), int(msg.height), tuple(float(v) for v in msg.k))
+
+    def info(self, t: float):
+        from ghsplat_jax.sim import messages
+
+        return messages.camera_info(self.matrix, self.width, self.height, t, self.frame_id)
+
+
+def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25) -> int:
+    """Pair capacity from an exact count for these views (the rasterizer's cheap binning
+    pass), with headroom for the next poses: the first compilation is usually the only one."""
+    from ghsplat_jax.raster import capacity_bucket
+    from ghsplat_jax.raster.render import _binning_cfg, count_pairs
+
+    needed = max(int(count_pairs(surfels, cam, _binning_cfg(cfg))[0]) for cam in cameras)
+    return capacity_bucket(int(needed * headroom))
+
+
+@dataclasses.dataclass
+class CameraFrame:
+    stamp: float
+    model: CameraModel
+    map_from_optical: np.ndarray
+    rgb: np.ndarray          # (H,W,3) float32 in [0,1]
+    alpha: np.ndarray        # (H,W)
+    depth: np.ndarray        # (H,W) z-depth, NaN where alpha < 0.5
+    normal: np.ndarray       # (H,W,3) world-frame unit normals, NaN where alpha < 0.5
+
+
+class CameraRenderer:
+    """Renders CameraModels at optical-frame poses; `traces` counts compilations.
+
+    `pair_capacity=None` sizes the rasterizer's pair buffer from an exact count at the
+    first frame; a later overflow grows it (one recompilation), never a partial image.
+    """
+
+    def __init__(self, render_fn: Callable | None = None, raster_config=None, pair_capacity: int | None = None,
+                 background=(0.0, 0.0, 0.0)):
+        self._render_fn = render_fn
+        self._raster_config = raster_config
+        self._background = tuple(background)
+        self.pair_capacity = pair_capacity
+        self.traces = 0
+        self._fns: dict[tuple[int, int], Callable] = {}
+
+    def _config(self):
+        import ghsplat_jax as gs
+
+        cfg = self._raster_config or gs.RasterConfig(near=0.2, background=self._background)
+        return dataclasses.replace(cfg, pair_capacity=self.pair_capacity, on_overflow="report")
+
+    def _render(self):
+        if self._render_fn is not None:
+            return self._render_fn
+        import ghsplat_jax as gs
+
+        cfg = self._config()
+        return lambda surfels, cam: gs.render(surfels, cam, cfg)
+
+    def _fn(self, width: int, height: int):
+        key = (width, height)
+        if key not in self._fns:
+            import jax
+            import jax.numpy as jnp
+
+            from ghsplat_jax.core.camera import Camera
+
+            render = self._render()
+
+            def many(surfels, Ks, w2cs):
+                self.traces += 1  # runs only while tracing
+                out = jax.vmap(lambda K, w: render(surfels, Camera(K, w, width, height)))(Ks, w2cs)
+                stats = getattr(out, "stats", None)
+                overflow = jnp.sum(stats.overflow) if stats is not None else jnp.int32(0)
+                pairs = jnp.max(stats.num_pairs) if stats is not None else jnp.int32(0)
+                return out.rgb, out.alpha, out.depth, out.normal, overflow, pairs
+
+            self._fns[key] = jax.jit(many)
+        return self._fns[key]
+
+    def render(self, surfels, model: CameraModel, map_from_optical: np.ndarray, stamp: float = 0.0) -> CameraFrame:
+        return self.render_many(surfels, [model], [map_from_optical], stamp)[0]
+
+    def render_many(self, surfels, models: list[CameraModel], poses: list[np.ndarray], stamp: float = 0.0) -> list[CameraFrame]:
+        """Cameras of one size render in one call (vmap); other sizes in their own."""
+        out: list[CameraFrame | None] = [None] * len(models)
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, m in enumerate(models):
+            groups.setdefault((m.width, m.height), []).append(i)
+        for (W, H), idx in groups.items():
+            Ks = np.stack([models[i].matrix for i in idx]).astype(np.float32)
+            w2cs = np.stack([frames.world_to_cam(poses[i]) for i in idx])
+            if self.pair_capacity is None:
+                self.pair_capacity = 1 << 14
+                if self._render_fn is None:
+                    from ghsplat_jax.core.camera import Camera
+
+                    self.pair_capacity = counted_capacity(
+                        surfels, [Camera(K, w, W, H) for K, w in zip(Ks, w2cs)], self._config())
+            for _ in range(8):
+                rgb, alpha, depth, normal, overflow, pairs = self._fn(W, H)(surfels, Ks, w2cs)
+                if int(overflow) == 0:
+                    break
+                from ghsplat_jax.raster import capacity_bucket
+
+                self.pair_capacity = capacity_bucket(int(int(pairs) * 1.1))
+                self._fns.clear()  # grow the pair buffer: one recompilation, never a partial image
+            else:
+                raise RuntimeError("camera render kept overflowing its pair buffer")
+            rgb, alpha, depth, normal = (np.asarray(a) for a in (rgb, alpha, depth, normal))
+            for j, i in enumerate(idx):
+                hit = alpha[j] >= 0.5
+                n = normal[j] / np.maximum(np.linalg.norm(normal[j], axis=-1, keepdims=True), 1e-12)
+                out[i] = CameraFrame(stamp, models[i], np.asarray(poses[i], np.float64),
+                                     np.clip(rgb[j], 0.0, 1.0).astype(np.float32), alpha[j].astype(np.float32),
+                                     np.where(hit, depth[j], np.nan).astype(np.float32),
+                                     np.where(hit[..., None], n, np.nan).astype(np.float32))
+        return out
