@@ -38,3 +38,38 @@ def test_viewer_serves_and_updates():
         assert b"<html" in html.lower()
     finally:
         v.close()
+
+
+def _chromium():
+    import shutil
+
+    return next((shutil.which(n) for n in ("chromium-headless-shell", "chromium", "chromium-browser")
+                 if shutil.which(n)), None)
+
+
+@pytest.mark.skipif(_chromium() is None, reason="no headless Chromium (make install adds chromium-headless-shell)")
+def test_viewer_screenshot_in_headless_chromium(tmp_path):
+    """A real browser renders the page: the surfel box and the LiDAR points are on screen."""
+    import subprocess
+
+    from ghsplat_jax.data.images import read_image
+
+    s = surfaces.box((0, 0, 0), (1, 1, 1), 0.1, surfaces.constant_colour((0.2, 0.7, 0.2)))
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()
+    v = viewer.SimViewer(SimScene(None, s, [], None), robot.Robot(), port=port)
+    shot = tmp_path / "viewer.png"
+    try:
+        v.set_cloud(np.random.default_rng(0).random((500, 3)) * 2)
+        subprocess.run([_chromium(), "--no-sandbox", "--headless", "--disable-gpu", "--enable-unsafe-swiftshader",
+                        "--use-angle=swiftshader", "--window-size=800,600", "--virtual-time-budget=15000",
+                        f"--screenshot={shot}", f"http://127.0.0.1:{port}/"],
+                       capture_output=True, timeout=120, check=True)
+    finally:
+        v.close()
+    rgb, _ = read_image(shot)
+    assert rgb.std() > 0.05  # not blank
+    green = (rgb[..., 1] > rgb[..., 0] + 0.2) & (rgb[..., 1] > rgb[..., 2] + 0.2)
+    assert green.sum() > 2000  # the splatted surfel box is drawn
