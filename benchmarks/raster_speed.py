@@ -133,6 +133,9 @@ def main():
     parser.add_argument("--sizes", nargs="*", default=["128x128", "256x256", "512x512", "1024x768"])
     parser.add_argument("--counts", nargs="*", type=int, default=[5000, 20000, 100000, 400000])
     parser.add_argument("--variants", nargs="*", default=list(VARIANTS))
+    parser.add_argument("--compare", nargs="*", default=["128x128/5000", "256x256/5000", "256x256/20000",
+                                                          "512x512/20000"],
+                        help="SIZE/COUNT cases that also run the other variants (the rest: first variant only)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="only 256x256 with 20k surfels")
     parser.add_argument("--out", default=str(RESULTS / "raster_speed"))
@@ -143,7 +146,8 @@ def main():
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         for n in args.counts:
-            rows += bench_case(width, height, n, args.repeats, args.variants)
+            compare = args.quick or f"{size}/{n}" in args.compare
+            rows += bench_case(width, height, n, args.repeats, args.variants if compare else args.variants[:1])
     summary = {}
     for r in rows:
         if r["variant"] == "tiled custom_vjp" and "forward_s" in r:

@@ -124,9 +124,27 @@ def segmented_exclusive_cumsum(values: jax.Array, first: jax.Array) -> jax.Array
     return jnp.where(first.reshape(first.shape + (1,) * (values.ndim - 1)), 0.0, previous)
 
 
-def _map(fn, xs, st: Static, remat: bool):
+def _map(fn, xs, st: Static, remat: bool, num_used: jax.Array):
+    """fn over chunks, `batch_chunks` at a time, skipping batches past the used chunks.
+
+    Used chunks come first, so a capacity with headroom costs memory but not compute: a batch
+    beyond `num_used` returns zeros (what empty chunks produce) without evaluating anything.
+    Under an outer vmap the cond becomes a select and nothing is skipped, but all stays exact.
+    """
     fn = jax.checkpoint(fn) if remat else fn
-    return jax.lax.map(lambda x: fn(*x), xs, batch_size=st.batch_chunks)
+    batch = st.batch_chunks
+    num_batches = jax.tree_util.tree_leaves(xs)[0].shape[0] // batch
+    xs = jax.tree_util.tree_map(lambda a: a.reshape((num_batches, batch) + a.shape[1:]), xs)
+    run = jax.vmap(lambda x: fn(*x))
+    out_shape = jax.eval_shape(run, jax.tree_util.tree_map(lambda a: a[0], xs))
+    skip = lambda _: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out_shape)
+
+    def body(carry, item):
+        i, x = item
+        return carry, jax.lax.cond(i * batch < num_used, run, skip, x)
+
+    _, ys = jax.lax.scan(body, None, (jnp.arange(num_batches), xs))
+    return jax.tree_util.tree_map(lambda a: a.reshape((num_batches * batch,) + a.shape[2:]), ys)
 
 
 def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
@@ -134,7 +152,8 @@ def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
         alpha, _ = evaluate_chunk(cp_w, valid_w, tile_w, st)
         return jnp.sum(jnp.log1p(-alpha), axis=0)
 
-    log_sum = _map(pass1, (cp, valid, tile), st, remat)
+    num_used = jnp.sum(valid[:, 0])
+    log_sum = _map(pass1, (cp, valid, tile), st, remat, num_used)
     log_t0 = jnp.maximum(segmented_exclusive_cumsum(log_sum, first), LOG_T_FLOOR)
 
     def pass2(cp_w, valid_w, tile_w, log_t0_w):
@@ -144,7 +163,7 @@ def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
         sums = pixel_sums(weight, z, cp_w.color, cp_w.normal, st)
         return sums, jnp.sum(jnp.where(last, z, 0.0), axis=0), has
 
-    sums, z_last, has = _map(pass2, (cp, valid, tile, log_t0), st, remat)
+    sums, z_last, has = _map(pass2, (cp, valid, tile, log_t0), st, remat, num_used)
     totals = jnp.zeros((st.num_tiles,) + sums.shape[1:]).at[tile].add(sums, mode="drop")
     chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)[:, None]
     selected = jnp.full((st.num_tiles, sums.shape[1]), -1, jnp.int32).at[tile].max(
@@ -198,7 +217,8 @@ def _custom_bwd(st, residuals, cotangents):
                            normal=weight @ g_n, depth=d_depth)
 
     chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)
-    d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, after_start, chunk_id), st, remat=False)
+    d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, after_start, chunk_id), st, remat=False,
+                num_used=jnp.sum(valid[:, 0]))
     return d_cp, None, None, None
 
 
