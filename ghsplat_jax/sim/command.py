@@ -42,9 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lidar-depth", choices=("expected", "median"), default="median",
                    help="median depth avoids ghost points between leaves and what is behind")
     p.add_argument("--range-noise", type=float, help="Gaussian range noise std (m), overrides the pattern")
-    p.add_argument("--lidar-batching", choices=("vmap", "map"), default="vmap",
-                   help="render the four faces as one vmap (default) or one after another in the same jit "
-                        "(lax.map: about 2x faster on CPU here, less memory)")
+    p.add_argument("--lidar-batching", choices=("vmap", "map"), default="map",
+                   help="render the four faces one after another in one jit (lax.map, default: the "
+                        "rasterizer skips unused work, less memory) or as one vmap")
     p.add_argument("--organised", action="store_true", help="organised cloud (rings x columns, NaN = no return)")
     p.add_argument("--record", metavar="run.mcap", help="write a rosbag2 bag with MCAP storage (run.mcap -> run/run.mcap)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")

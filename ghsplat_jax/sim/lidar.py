@@ -1,8 +1,9 @@
 """A spinning LiDAR from four 90-degree z-depth renders.
 
-The four faces look along lidar azimuths 0, 90, 180 and 270 deg; together they are
-rendered as one `jax.vmap` over cameras of one size inside one jit, and resampled onto
-the beam pattern in the same jit:
+The four faces look along lidar azimuths 0, 90, 180 and 270 deg; they are rendered inside
+one jit (one after another with lax.map by default, where the rasterizer skips unused work;
+or as one jax.vmap over cameras of one size) and resampled onto the beam pattern in the same
+jit:
 
 - every column's azimuth lies in exactly one face (half-open intervals
   [a_k - 45 deg, a_k + 45 deg)), so seams neither duplicate nor drop azimuths; the
@@ -187,7 +188,7 @@ class Lidar:
 
     def __init__(self, pattern: BeamPattern, *, face_width: int | None = None, depth: str = "expected",
                  min_alpha: float = 0.5, render_fn: RenderFn | None = None, raster_config=None,
-                 pair_capacity: int | None = None, batching: str = "vmap"):
+                 pair_capacity: int | None = None, batching: str = "map"):
         if batching not in ("vmap", "map"):
             raise ValueError(f"batching must be 'vmap' or 'map', got {batching!r}")
         self.batching = batching
