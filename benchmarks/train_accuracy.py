@@ -1,0 +1,114 @@
+"""Training accuracy benchmark: lego at 400x400 (target test PSNR >= 32 dB) and llff_fern
+images_8 at 504x378 (target >= 25 dB); training time, peak memory, final surfel count, and
+the budgeted strategy against the default at a fifth of the default's count.
+
+    python benchmarks/train_accuracy.py                      # full 30k-step schedule (GPU-sized)
+    python benchmarks/train_accuracy.py --steps 2000         # short schedule (scaled 2DGS shape)
+    python benchmarks/train_accuracy.py --scenes fern --steps 1000 --no-budget
+
+Each run trains in its own process (`ghsplat train`), so peak memory is per run; results go
+to benchmarks/results/train_<scene>.json (and the run folders under --runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = {
+    # name: (dataset folder, overrides, target test PSNR)
+    "lego": ("nerf_synthetic_lego", {"downscale": 2.0, "background": [1.0, 1.0, 1.0]}, 32.0),
+    "fern": ("llff_fern", {"downscale": 8.0}, 25.0),
+}
+
+
+def run_training(name: str, data: str, overrides: dict, steps: int, out: Path, extra: dict) -> dict:
+    from ghsplat_jax.train.config import to_toml
+
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = dict(overrides, data=data, steps=steps, progress=False, scale_schedule=steps < 30_000, **extra)
+    cfg_path = out / "bench_config.toml"
+    cfg_path.write_text(to_toml(cfg))
+    cmd = [sys.executable, "-m", "ghsplat_jax.cli", "train", "--out", str(out), "--config", str(cfg_path)]
+    if (out / "checkpoint.npz").exists() and not (out / "metrics.json").exists():
+        cmd.append("--resume")
+    if not (out / "metrics.json").exists():
+        t = time.perf_counter()
+        print(f"[{name}] {' '.join(cmd)}", flush=True)
+        subprocess.run(cmd, check=True, cwd=ROOT, env=dict(os.environ))
+        print(f"[{name}] done in {time.perf_counter() - t:.0f} s", flush=True)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def summary(m: dict) -> dict:
+    return {"test_psnr": m["test"]["psnr"], "test_l1": m["test"]["l1"], "test_ssim": m["test"]["ssim"],
+            "train_psnr": m["train"]["psnr"], "num_gaussians": m["num_gaussians"],
+            "train_seconds": m["train_seconds"], "steps": m["steps"], "peak_rss_mb": m.get("peak_rss_mb"),
+            "render_seconds_per_view": m.get("render_seconds_per_view"), "image_size": m.get("image_size")}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="lego,fern", help="comma-separated: " + ",".join(SCENES))
+    ap.add_argument("--steps", type=int, default=30_000, help="training steps (a short run scales the schedule)")
+    ap.add_argument("--no-budget", action="store_true", help="skip the budgeted-strategy comparison")
+    ap.add_argument("--budget-fraction", type=float, default=0.2, help="budget = this x the default run's count")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra TrainConfig overrides")
+    ap.add_argument("--runs", default=str(ROOT / "runs" / "bench"), help="run folders")
+    ap.add_argument("--results", default=str(ROOT / "benchmarks" / "results"))
+    args = ap.parse_args(argv)
+
+    import tomllib
+
+    import jax
+
+    from ghsplat_jax.paths import datasets_root
+
+    extra = {k: tomllib.loads(f"v = {v}")["v"] for k, v in (s.split("=", 1) for s in args.set)}
+    for name in args.scenes.split(","):
+        data, overrides, target = SCENES[name]
+        if not (datasets_root() / data).is_dir():
+            print(f"[{name}] skipped: {datasets_root() / data} not found")
+            continue
+        runs = Path(args.runs) / f"{name}_{args.steps}"
+        default = run_training(name, data, overrides, args.steps, runs / "default", extra)
+        result = {
+            "scene": name, "dataset": data, "steps": args.steps, "schedule": "2DGS" if args.steps >= 30_000 else
+            f"2DGS scaled by {args.steps}/30000", "target_test_psnr": target, "overrides": overrides | extra,
+            "default": summary(default), "meets_target": default["test"]["psnr"] >= target,
+            "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                        "jax": jax.__version__, "backend": jax.default_backend(),
+                        "devices": [str(d) for d in jax.devices()]},
+            "measured_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        deviations = []
+        if args.steps < 30_000:
+            deviations.append(f"{args.steps} steps instead of 30000 (schedule scaled), so the PSNR target does not apply")
+        for k, v in extra.items():
+            if k in overrides and overrides[k] != v:
+                deviations.append(f"{k} = {v} instead of {overrides[k]} (the target's resolution)")
+            elif k not in ("checkpoint_every", "progress"):
+                deviations.append(f"{k} = {v}")
+        result["protocol_deviations"] = deviations
+        if not args.no_budget:
+            cap = max(int(default["num_gaussians"] * args.budget_fraction), 1)
+            budget = run_training(name, data, overrides, args.steps, runs / f"budget_{cap}",
+                                  dict(extra, strategy="budget", max_surfels=cap))
+            result["budget"] = summary(budget) | {"max_surfels": cap, "fraction_of_default": args.budget_fraction}
+            result["budget_minus_default_psnr"] = budget["test"]["psnr"] - default["test"]["psnr"]
+        out = Path(args.results) / f"train_{name}.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2) + "\n")
+        print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

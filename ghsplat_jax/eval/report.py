@@ -1,0 +1,127 @@
+"""Tables of runs: the paper's Table 1 (L1, PSNR and Gaussian count per segment) and the
+full results table of an experiment, as markdown and CSV."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+from ghsplat_jax.io_utils import atomic_write
+
+# GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
+PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
+
+RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds",
+                  "steps", "render_seconds_per_view", "run_dir")
+
+
+def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
+    """One table row from RUN_DIR/metrics.json (test metrics, or train when there is no test split)."""
+    run_dir = Path(run_dir)
+    path = run_dir / "metrics.json"
+    if not path.is_file():
+        return None
+    m = json.loads(path.read_text())
+    has_test = bool((m.get("test") or {}).get("num_views"))
+    split = "test" if has_test else "train"
+    s = m[split]
+    return {
+        "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
+        "psnr": s.get("psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"), "num_gaussians": m.get("num_gaussians"),
+        "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
+        "render_seconds_per_view": m.get("render_seconds_per_view"), "run_dir": str(run_dir),
+    }
+
+
+def collect_runs(run_dirs) -> list[dict]:
+    rows = [run_row(d) for d in run_dirs]
+    return [r for r in rows if r is not None]
+
+
+def _fmt(key: str, v) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if key == "l1":
+        return f"{v:.4f}"
+    if key in ("psnr",):
+        return f"{v:.2f}"
+    if key == "ssim":
+        return f"{v:.3f}"
+    if key == "num_gaussians":
+        return f"{int(v):,}"
+    if key in ("train_seconds",):
+        return f"{v:.0f}"
+    if key == "render_seconds_per_view":
+        return f"{v:.3f}"
+    return str(v)
+
+
+def markdown_table(rows: list[dict], columns, headers=None) -> str:
+    headers = headers or columns
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join(" --- " for _ in columns) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(c, r.get(c)) for c in columns) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(rows: list[dict], columns) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(columns), extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({c: ("" if r.get(c) is None else r.get(c)) for c in columns})
+    return buf.getvalue()
+
+
+def table1_rows(rows: list[dict]) -> list[dict]:
+    """Table 1 layout: one row per segment (scene, and variant when there are several)."""
+    variants = {r.get("variant") for r in rows}
+    out = []
+    for r in rows:
+        seg = r["scene"] if len(variants) <= 1 else f"{r['scene']} ({r['variant']})"
+        out.append({"segment": seg, "l1": r["l1"], "psnr": r["psnr"], "num_gaussians": r["num_gaussians"],
+                    "split": r["split"], "steps": r["steps"]})
+    return out
+
+
+def table1_markdown(rows: list[dict], title: str = "Table 1") -> str:
+    t1 = table1_rows(rows)
+    text = [f"# {title}\n", markdown_table(t1, ("segment", "l1", "psnr", "num_gaussians", "split", "steps"),
+                                            ("Segment", "L1", "PSNR (dB)", "Gaussians", "split", "steps"))]
+    vals = [r for r in t1 if r["psnr"] is not None]
+    if vals:
+        rng = lambda k: (min(r[k] for r in vals), max(r[k] for r in vals))  # noqa: E731
+        (l1a, l1b), (pa, pb), (na, nb) = rng("l1"), rng("psnr"), rng("num_gaussians")
+        text.append(f"\nThese runs: L1 {l1a:.4f}-{l1b:.4f}, PSNR {pa:.2f}-{pb:.2f} dB, {na:,}-{nb:,} Gaussians.\n")
+    p = PAPER_TABLE1
+    text.append(f"GreenhouseSplat paper (8 greenhouse row segments, 2DGS, 30k steps): L1 {p['l1'][0]}-{p['l1'][1]}, "
+                f"PSNR {p['psnr'][0]}-{p['psnr'][1]} dB, {p['num_gaussians'][0]:,}-{p['num_gaussians'][1]:,} "
+                "Gaussians.\n")
+    return "".join(text)
+
+
+def write_table1(rows: list[dict], folder, title: str = "Table 1") -> list[Path]:
+    folder = Path(folder)
+    md, csv_path = folder / "table1.md", folder / "table1.csv"
+    with atomic_write(md, "w") as fh:
+        fh.write(table1_markdown(rows, title))
+    with atomic_write(csv_path, "w") as fh:
+        fh.write(csv_text(table1_rows(rows), ("segment", "l1", "psnr", "num_gaussians", "split", "steps")))
+    return [md, csv_path]
+
+
+def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path]:
+    folder = Path(folder)
+    md, csv_path = folder / "results.md", folder / "results.csv"
+    cols = ("scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds", "steps",
+            "render_seconds_per_view")
+    with atomic_write(md, "w") as fh:
+        fh.write(f"# {title}\n\n" + markdown_table(rows, cols, ("scene", "variant", "split", "PSNR (dB)", "L1",
+                                                                 "SSIM", "Gaussians", "train s", "steps",
+                                                                 "render s/view")))
+    with atomic_write(csv_path, "w") as fh:
+        fh.write(csv_text(rows, RESULT_COLUMNS))
+    return [md, csv_path]

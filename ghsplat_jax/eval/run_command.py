@@ -1,0 +1,44 @@
+"""`ghsplat run experiments/NAME.toml`: train a set of runs (scenes x variants), skip finished
+ones, and collect their metrics into one table, a Table-1 report and charts."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+HELP = "run an experiment file: scenes x config variants, then tables and charts"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("experiment", help="experiment TOML file (see experiments/)")
+    p.add_argument("--output", help="folder for the runs and reports (default: the file's `output`)")
+    p.add_argument("--only", action="append", default=[], metavar="SCENE[/VARIANT]", help="run only these")
+    p.add_argument("--steps", type=int, help="override the step count of every run")
+    p.add_argument("--list", action="store_true", help="list the planned runs and their state, train nothing")
+    p.add_argument("--report-only", action="store_true", help="only collect finished runs into the reports")
+    p.add_argument("--stop-on-error", action="store_true", help="stop at the first failed run")
+
+
+def main(args) -> int:
+    from ghsplat_jax.eval.runner import load_experiment, run_experiment
+    from ghsplat_jax.train.config import ConfigError
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    overrides = {"steps": args.steps} if args.steps is not None else None
+    try:
+        exp = load_experiment(args.experiment, args.output, overrides)
+    except ConfigError as exc:
+        print(f"ghsplat run: {exc}", file=sys.stderr)
+        return 2
+    if args.list:
+        for r in exp.runs:
+            state = "finished" if r.finished else ("interrupted" if (r.out_dir / "checkpoint.npz").exists() else "todo")
+            print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
+                  f"strategy={r.config.strategy})")
+        return 0
+    result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only)
+    for run, msg in result["failed"]:
+        print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
+    print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))
+    return 1 if result["failed"] else 0

@@ -1,0 +1,146 @@
+"""Experiment runner: scenes x config variants from a TOML file, finished runs skipped, every
+metrics.json collected into one table (markdown + CSV), a Table-1 report and charts.
+
+Experiment file layout (see experiments/*.toml):
+
+    name = "quick_cpu"
+    output = "runs/quick_cpu"      # relative to the current folder unless absolute
+    [train]                        # TrainConfig overrides for every run
+    steps = 300
+    [[scenes]]
+    name = "fern"
+    data = "llff_fern"             # a folder, or a name under the shared datasets root
+    train = { downscale = 8.0 }    # per-scene overrides
+    [[variants]]                   # optional; one "default" variant when absent
+    name = "budget"
+    train = { strategy = "budget", max_surfels = 20000 }
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+import traceback
+from pathlib import Path
+
+from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides
+
+log = logging.getLogger("ghsplat.run")
+
+_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannedRun:
+    scene: str
+    variant: str
+    config: TrainConfig
+    out_dir: Path
+
+    @property
+    def finished(self) -> bool:
+        return (self.out_dir / "metrics.json").is_file()
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    name: str
+    description: str
+    output: Path
+    runs: list[PlannedRun]
+    source: Path
+
+
+def _name(entry: dict, kind: str, i: int, source) -> str:
+    name = entry.get("name")
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
+    return name
+
+
+def load_experiment(path, output: str | os.PathLike | None = None, overrides: dict | None = None) -> Experiment:
+    """Parse and validate an experiment file into planned runs (nothing is trained)."""
+    import tomllib
+
+    path = Path(path)
+    try:
+        spec = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read experiment ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    unknown = set(spec) - {"name", "description", "output", "train", "scenes", "variants"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
+    name = spec.get("name", path.stem)
+    scenes = spec.get("scenes")
+    if not isinstance(scenes, list) or not scenes:
+        raise ConfigError(f"{path}: an experiment needs at least one [[scenes]] entry")
+    variants = spec.get("variants") or [{"name": "default"}]
+    base = apply_overrides(TrainConfig(), spec.get("train", {}), f"{path} [train]")
+    out_root = Path(output or spec.get("output") or Path("runs") / name)
+    runs = []
+    seen = set()
+    for i, scene in enumerate(scenes):
+        sname = _name(scene, "scenes", i, path)
+        if "data" not in scene:
+            raise ConfigError(f"{path}: scene {sname!r} has no 'data'")
+        for j, variant in enumerate(variants):
+            vname = _name(variant, "variants", j, path)
+            if (sname, vname) in seen:
+                raise ConfigError(f"{path}: run {sname}/{vname} appears twice")
+            seen.add((sname, vname))
+            where = f"{path} scene {sname!r} variant {vname!r}"
+            cfg = apply_overrides(base, dict(scene.get("train", {}), data=scene["data"]), where)
+            cfg = apply_overrides(cfg, variant.get("train", {}), where)
+            if overrides:
+                cfg = apply_overrides(cfg, overrides, "command line")
+            runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
+    return Experiment(name, spec.get("description", ""), out_root, runs, path)
+
+
+def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
+                   evaluate_only: bool = False) -> dict:
+    """Train every unfinished run (resuming interrupted ones), then write the reports.
+    Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+    from ghsplat_jax.train.command import run as train_run
+
+    failed = []
+    for r in exp.runs:
+        if only and r.scene not in only and f"{r.scene}/{r.variant}" not in only:
+            continue
+        if r.finished:
+            log.info("%s/%s: finished, skipped", r.scene, r.variant)
+            continue
+        if evaluate_only:
+            continue
+        log.info("%s/%s: training into %s", r.scene, r.variant, r.out_dir)
+        try:
+            train_run(r.config, r.out_dir, resume=(r.out_dir / "checkpoint.npz").is_file())
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # one broken scene must not stop the set
+            msg = f"{type(exc).__name__}: {exc}"
+            log.error("%s/%s failed: %s", r.scene, r.variant, msg)
+            log.debug(traceback.format_exc())
+            failed.append((f"{r.scene}/{r.variant}", msg))
+            if stop_on_error:
+                raise
+    rows, reports = collect(exp)
+    return {"rows": rows, "failed": failed, "reports": reports}
+
+
+def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
+    """Rows of every finished run, and the reports written into the experiment folder."""
+    from ghsplat_jax.eval.charts import write_charts
+    from ghsplat_jax.eval.report import run_row, write_results, write_table1
+
+    rows = [row for r in exp.runs if (row := run_row(r.out_dir, r.scene, r.variant, exp.name)) is not None]
+    if not rows:
+        return rows, []
+    title = f"{exp.name}: {exp.description}" if exp.description else exp.name
+    reports = write_results(rows, exp.output, title) + write_table1(rows, exp.output, f"Table 1 ({exp.name})")
+    reports += write_charts(rows, exp.output, exp.name)
+    return rows, reports

@@ -1,0 +1,67 @@
+"""Checkpoints: the state pytree's leaves in one .npz (atomic), with the step, the pair
+capacity and the resolved config, so `--resume` continues bit for bit."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ghsplat_jax.io_utils import atomic_write
+
+CHECKPOINT_NAME = "checkpoint.npz"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be written or restored; the message names the file."""
+
+
+def _key(path) -> str:
+    return jax.tree_util.keystr(path)
+
+
+def save_checkpoint(path: str | os.PathLike, state, extra: dict) -> Path:
+    """Write `state` (any pytree) and a JSON-able `extra` dict; refuses non-finite live values."""
+    path = Path(path)
+    leaves = jax.tree_util.tree_flatten_with_path(state)[0]
+    arrays = {}
+    for i, (p, leaf) in enumerate(leaves):
+        arrays[f"leaf_{i:04d}"] = np.asarray(leaf)
+    active = np.asarray(state.active)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        values = np.asarray(getattr(state.params, name))[active]
+        if not np.all(np.isfinite(values)):
+            raise CheckpointError(f"{path}: refusing to write non-finite {name} to a checkpoint")
+    meta = dict(extra, keys=[_key(p) for p, _ in leaves])
+    arrays["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    with atomic_write(path, "wb") as fh:
+        np.savez(fh, **arrays)
+    return path
+
+
+def read_meta(path: str | os.PathLike) -> dict:
+    path = Path(path)
+    try:
+        with np.load(path) as z:
+            return json.loads(bytes(z["meta_json"]).decode())
+    except (OSError, KeyError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a readable checkpoint ({exc})") from None
+
+
+def load_checkpoint(path: str | os.PathLike, template) -> tuple[object, dict]:
+    """Restore a pytree with the structure of `template` (shapes from the file)."""
+    path = Path(path)
+    meta = read_meta(path)
+    paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+    keys = [_key(p) for p, _ in paths]
+    if keys != meta["keys"]:
+        raise CheckpointError(f"{path}: the checkpoint's state layout does not match this version's")
+    with np.load(path) as z:
+        leaves = [jax.numpy.asarray(z[f"leaf_{i:04d}"]) for i in range(len(keys))]
+    for (p, t), leaf in zip(paths, leaves):
+        if np.ndim(t) != leaf.ndim:
+            raise CheckpointError(f"{path}: leaf {_key(p)} has rank {leaf.ndim}, expected {np.ndim(t)}")
+    return jax.tree_util.tree_unflatten(treedef, leaves), meta

@@ -1,0 +1,100 @@
+"""`ghsplat train`: train 2DGS surfels on a dataset folder, then evaluate the run."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+HELP = "train 2D Gaussian surfels on a dataset (2DGS defaults; --config FILE.toml overrides)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", help="dataset folder (COLMAP, transforms.json or LLFF; a bare name is looked up "
+                                  "under the shared datasets root)")
+    p.add_argument("--out", required=True, help="run folder (config, stats, checkpoints, point_cloud.ply, metrics)")
+    p.add_argument("--config", help="TOML (or JSON) file of TrainConfig overrides")
+    p.add_argument("--steps", type=int, help="optimisation steps (default 30000)")
+    p.add_argument("--downscale", type=float, help="image downscale factor")
+    p.add_argument("--strategy", choices=("default", "budget"), help="densification strategy")
+    p.add_argument("--max-surfels", type=int, help="cap on the surfel count for --strategy budget")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--white", action="store_true", help="composite and render on a white background")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any TrainConfig field, e.g. --set lambda_dist=100 (TOML value syntax)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz with OUT/config.toml")
+    p.add_argument("--until", type=int, help="stop after this step with a checkpoint (continue with --resume)")
+    p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def resolve_config(args):
+    from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides, load_config
+    from ghsplat_jax.train.trainer import CONFIG_NAME
+
+    out = Path(args.out)
+    config = TrainConfig()
+    if args.resume and (out / CONFIG_NAME).is_file():
+        config = load_config(out / CONFIG_NAME)
+    if args.config:
+        config = load_config(args.config, config)
+    overrides = {}
+    for item in args.set:
+        import tomllib
+
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            overrides[key.strip()] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            overrides[key.strip()] = value  # a bare string
+    for key in ("data", "steps", "downscale", "strategy", "seed"):
+        if getattr(args, key) is not None:
+            overrides[key] = getattr(args, key)
+    if args.max_surfels is not None:
+        overrides["max_surfels"] = args.max_surfels
+    if args.white:
+        overrides["background"] = (1.0, 1.0, 1.0)
+    if args.no_progress:
+        overrides["progress"] = False
+    return apply_overrides(config, overrides, "command line")
+
+
+def run(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True, until: int | None = None) -> dict:
+    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
+    or when stopped early by `until`)."""
+    from ghsplat_jax.train.trainer import load_training_data, train
+
+    dataset = dataset if dataset is not None else load_training_data(config)
+    result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
+    if not evaluate or result.steps < config.resolved().steps:
+        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
+    from ghsplat_jax.eval.evaluate import evaluate as evaluate_fn
+
+    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
+
+
+def main(args) -> int:
+    from ghsplat_jax.train.config import ConfigError
+    from ghsplat_jax.train.trainer import TrainingDivergedError
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        config = resolve_config(args)
+        metrics = run(config, args.out, resume=args.resume, evaluate=not args.no_eval, until=args.until)
+    except (ConfigError, TrainingDivergedError, FileNotFoundError) as exc:
+        print(f"ghsplat train: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # DatasetError and bad inputs are ValueErrors with a clear message
+        print(f"ghsplat train: {exc}", file=sys.stderr)
+        return 2
+    if metrics["steps"] < config.resolved().steps:
+        print(f"{args.out}: stopped at step {metrics['steps']} of {config.steps}; continue with --resume")
+        return 0
+    test = metrics.get("test") or {}
+    psnr = test.get("psnr")
+    print(f"{args.out}: {metrics['num_gaussians']} surfels, {metrics['steps']} steps, "
+          f"{metrics['train_seconds']:.1f} s" + (f", test PSNR {psnr:.2f} dB" if psnr is not None else ""))
+    return 0

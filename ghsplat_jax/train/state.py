@@ -1,0 +1,170 @@
+"""The training state: surfels padded to a fixed capacity with an `active` mask, optimiser
+state and densification statistics, so shapes never change under jit."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ghsplat_jax.core.surfels import Surfels
+
+INACTIVE_LOGIT = -20.0  # sigmoid ~ 2e-9: an empty slot is invisible even if it were drawn
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TrainState:
+    params: Surfels        # (cap, ...) raw parameters; rows where active is False are free slots
+    active: jax.Array      # (cap,) bool
+    opt_state: dict        # per-group optax Adam state (rows aligned with params)
+    grad_accum: jax.Array  # (cap,) summed NDC norm of the projected-centre gradient
+    grad_count: jax.Array  # (cap,) number of views in which the surfel was visible
+    max_radii: jax.Array   # (cap,) largest screen radius (px) since the last densification
+    step: jax.Array        # () int32: steps completed
+
+    @property
+    def capacity(self) -> int:
+        return self.active.shape[0]
+
+    def num_active(self) -> int:
+        return int(jnp.sum(self.active))
+
+    def active_surfels(self) -> Surfels:
+        """The live surfels as a compact host Surfels (for saving and evaluation)."""
+        mask = np.asarray(self.active)
+        return self.params.to_numpy().take(mask)
+
+
+def empty_params(capacity: int, sh_degree: int) -> Surfels:
+    k = (sh_degree + 1) ** 2 - 1
+    return Surfels(
+        means=np.zeros((capacity, 3), np.float32),
+        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (capacity, 1)),
+        log_scales=np.full((capacity, 2), np.log(1e-3), np.float32),
+        opacity_logits=np.full((capacity,), INACTIVE_LOGIT, np.float32),
+        sh_dc=np.zeros((capacity, 3), np.float32),
+        sh_rest=np.zeros((capacity, k, 3), np.float32),
+    )
+
+
+def knn_log_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """log of the root mean squared distance to the k nearest neighbours (3DGS/2DGS init)."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 2:
+        return np.full((n,), np.log(0.01), np.float32)
+    kk = min(k, n - 1)
+    dist, _ = cKDTree(points).query(points, k=kk + 1)
+    d2 = np.mean(np.asarray(dist).reshape(n, -1)[:, 1:] ** 2, axis=1)
+    return (0.5 * np.log(np.maximum(d2, 1e-7))).astype(np.float32)
+
+
+def random_quats(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4)).astype(np.float32)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def initial_surfels(points, colors, scene_center, scene_extent: float, config, rng) -> Surfels:
+    """Host Surfels from dataset points (or random points in the scene box when there are too few)."""
+    from ghsplat_jax.core.sh import rgb_to_dc
+
+    points = np.zeros((0, 3), np.float32) if points is None else np.asarray(points, np.float32).reshape(-1, 3)
+    finite = np.all(np.isfinite(points), axis=1)
+    points = points[finite]
+    colors = None if colors is None else np.asarray(colors, np.float32).reshape(-1, 3)[finite]
+    if len(points) < config.init_min_points:
+        n = config.init_random_points
+        half = 0.5 * scene_extent
+        points = (np.asarray(scene_center, np.float32) + rng.uniform(-half, half, size=(n, 3))).astype(np.float32)
+        colors = rng.uniform(0, 1, size=(n, 3)).astype(np.float32)
+    if config.init_max_points and len(points) > config.init_max_points:
+        keep = rng.choice(len(points), config.init_max_points, replace=False)
+        points = points[keep]
+        colors = None if colors is None else colors[keep]
+    if colors is None:
+        colors = np.full_like(points, 0.5)
+    n = len(points)
+    log_s = knn_log_scales(points)
+    if config.init_scale_max > 0:
+        log_s = np.minimum(log_s, np.log(config.init_scale_max * scene_extent))
+    k = (config.sh_degree + 1) ** 2 - 1
+    logit = np.log(config.init_opacity / (1 - config.init_opacity))
+    return Surfels(
+        means=points,
+        quats=random_quats(rng, n),
+        log_scales=np.repeat(log_s[:, None], 2, axis=1),
+        opacity_logits=np.full((n,), logit, np.float32),
+        sh_dc=np.asarray(rgb_to_dc(np.clip(colors, 0, 1)), np.float32),
+        sh_rest=np.zeros((n, k, 3), np.float32),
+    )
+
+
+def pad_params(s: Surfels, capacity: int) -> tuple[Surfels, np.ndarray]:
+    """Host Surfels padded with empty slots to `capacity`, and the active mask."""
+    s = s.to_numpy()
+    if s.num > capacity:
+        raise ValueError(f"{s.num} surfels do not fit a pool of capacity {capacity}")
+    empty = empty_params(capacity - s.num, s.sh_degree)
+    padded = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b], 0), s, empty)
+    active = np.zeros(capacity, bool)
+    active[: s.num] = True
+    return padded, active
+
+
+def new_state(params: Surfels, active, optimizers: dict) -> TrainState:
+    from ghsplat_jax.train import optim
+
+    params = jax.tree_util.tree_map(jnp.asarray, params)
+    cap = params.num
+    return TrainState(
+        params=params,
+        active=jnp.asarray(active, bool),
+        opt_state=optim.init(optimizers, params),
+        grad_accum=jnp.zeros(cap, jnp.float32),
+        grad_count=jnp.zeros(cap, jnp.float32),
+        max_radii=jnp.zeros(cap, jnp.float32),
+        step=jnp.zeros((), jnp.int32),
+    )
+
+
+def grow(state: TrainState, capacity: int) -> TrainState:
+    """The same state in a larger pool (new slots empty, zero statistics and moments)."""
+    old = state.capacity
+    if capacity <= old:
+        return state
+    extra = capacity - old
+    empty = empty_params(extra, state.params.sh_degree)
+    params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, jnp.asarray(b)], 0), state.params, empty)
+
+    def pad_rows(leaf):
+        if hasattr(leaf, "ndim") and leaf.ndim >= 1 and leaf.shape[0] == old:
+            return jnp.concatenate([leaf, jnp.zeros((extra,) + leaf.shape[1:], leaf.dtype)], 0)
+        return leaf
+
+    return TrainState(
+        params=params,
+        active=pad_rows(state.active),
+        opt_state=jax.tree_util.tree_map(pad_rows, state.opt_state),
+        grad_accum=pad_rows(state.grad_accum),
+        grad_count=pad_rows(state.grad_count),
+        max_radii=pad_rows(state.max_radii),
+        step=state.step,
+    )
+
+
+def render_params(params: Surfels, active: jax.Array, world_to_cam: jax.Array) -> Surfels:
+    """Parameters to render: free slots are moved behind the camera (culled before binning,
+    so they take no tile pairs) and made transparent; their gradients are zero."""
+    R, t = world_to_cam[:3, :3], world_to_cam[:3, 3]
+    center = -R.T @ t
+    behind = center - R[2]  # one unit behind the camera along its optical axis
+    a = active[:, None]
+    return dataclasses.replace(
+        params,
+        means=jnp.where(a, params.means, behind),
+        opacity_logits=jnp.where(active, params.opacity_logits, INACTIVE_LOGIT),
+    )

@@ -1,0 +1,142 @@
+"""The jit-compiled training step: render -> loss -> gradients -> Adam, plus the
+densification statistics from the gradient of the projected centres."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.core.camera import Camera
+from ghsplat_jax.train import losses, optim
+from ghsplat_jax.train.densify import accumulate_stats
+from ghsplat_jax.train.state import TrainState, render_params
+
+
+@dataclasses.dataclass(frozen=True)
+class LossWeights:
+    """Static loss settings (hashable)."""
+
+    lambda_dssim: float
+    lambda_dist: float
+    dist_from: int
+    lambda_normal: float
+    normal_from: int
+    depth_ratio: float
+    sh_degree: int
+    sh_increase_every: int
+
+    @classmethod
+    def from_config(cls, c) -> "LossWeights":
+        return cls(c.lambda_dssim, c.lambda_dist, c.dist_from, c.lambda_normal, c.normal_from,
+                   c.depth_ratio, c.sh_degree, c.sh_increase_every)
+
+
+def sh_band_mask(step: jax.Array, w: LossWeights, num_rest: int) -> jax.Array:
+    """(K,) 1 for the higher SH coefficients of bands already switched on at `step`: the
+    degree grows by one every sh_increase_every steps without changing shapes (no recompile)."""
+    degree = jnp.minimum(step // max(w.sh_increase_every, 1), w.sh_degree)
+    band = jnp.floor(jnp.sqrt(jnp.arange(1, num_rest + 1, dtype=jnp.float32)) + 1e-6)
+    return (band <= degree).astype(jnp.float32)
+
+
+def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn):
+    p = render_params(params, active, camera.world_to_cam)
+    mask = sh_band_mask(step, w, p.sh_rest.shape[1])
+    p = dataclasses.replace(p, sh_rest=p.sh_rest * mask[None, :, None])
+    out = render_fn(p, camera, raster_cfg, means2d_probe=probe)
+    l1 = losses.l1(out.rgb, image)
+    ssim = losses.ssim(out.rgb, image)
+    loss = (1.0 - w.lambda_dssim) * l1 + w.lambda_dssim * (1.0 - ssim)
+    dist = jnp.mean(out.distortion)
+    if w.lambda_dist > 0:
+        loss = loss + jnp.where(step >= w.dist_from, w.lambda_dist, 0.0) * dist
+    normal_loss = jnp.zeros(())
+    if w.lambda_normal > 0:
+        depth = out.depth if w.depth_ratio == 0 else (
+            (1 - w.depth_ratio) * out.depth + w.depth_ratio * out.median_depth)
+        dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)
+        normal_loss = losses.normal_consistency(out.normal, dn, out.alpha)
+        loss = loss + jnp.where(step >= w.normal_from, w.lambda_normal, 0.0) * normal_loss
+    aux = dict(l1=l1, ssim=ssim, psnr=losses.psnr(out.rgb, image), distortion=dist, normal=normal_loss,
+               visible=out.visible, radii=out.radii, num_pairs=out.stats.num_pairs,
+               overflow=out.stats.overflow)
+    return loss, aux
+
+
+def _all_finite(tree, active) -> jax.Array:
+    def leaf_ok(a):
+        ok = jnp.isfinite(a).reshape(a.shape[0], -1).all(axis=1)
+        return jnp.all(ok | ~active)
+    return jnp.all(jnp.stack([leaf_ok(a) for a in jax.tree_util.tree_leaves(tree)]))
+
+
+def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: int, height: int, optimizers, weights,
+               raster_cfg, render_fn):
+    """One step on one view; returns (new state, metrics). Rows of free slots get zero
+    gradients; `finite` is False when the loss, a gradient or a live parameter is not finite."""
+    camera = Camera(K, world_to_cam, width, height)
+    probe = jnp.zeros((state.capacity, 2), jnp.float32)
+    grad_fn = jax.value_and_grad(_loss, argnums=(0, 1), has_aux=True)
+    (loss, aux), (grads, probe_grad) = grad_fn(state.params, probe, state.active, image, camera, state.step,
+                                                weights, raster_cfg, render_fn)
+    act = state.active
+
+    def mask_rows(g):
+        return jnp.where(act.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0)
+
+    grads = jax.tree_util.tree_map(mask_rows, grads)
+    params, opt_state = optim.update(optimizers, state.opt_state, grads, state.params, means_lr)
+    new = dataclasses.replace(state, params=params, opt_state=opt_state, step=state.step + 1)
+    new = accumulate_stats(new, probe_grad, aux["radii"], aux["visible"], width, height)
+    finite = jnp.isfinite(loss) & _all_finite(grads, act) & _all_finite(params, act)
+    metrics = dict(loss=loss, l1=aux["l1"], ssim=aux["ssim"], psnr=aux["psnr"], distortion=aux["distortion"],
+                   normal=aux["normal"], num_pairs=aux["num_pairs"], overflow=aux["overflow"], finite=finite)
+    return new, metrics
+
+
+TRACE_COUNTS: dict[str, int] = {"train_step": 0}  # incremented only while tracing: proves no recompiles
+
+
+def _step_key(config) -> tuple:
+    """The config fields a compiled step depends on (the optimiser and the loss)."""
+    return (config.lr_sh_dc, config.lr_sh_rest, config.lr_opacity, config.lr_scales, config.lr_quats,
+            config.adam_eps, LossWeights.from_config(config))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_step(key: tuple, render_fn):
+    config = _KEY_CONFIGS[key]
+    optimizers = optim.make_optimizers(config)
+    weights = LossWeights.from_config(config)
+    if render_fn is None:
+        from ghsplat_jax.raster.render import render as render_fn
+
+    def step(state, image, K, world_to_cam, means_lr, raster_cfg, width, height):
+        TRACE_COUNTS["train_step"] += 1
+        return train_step(state, image, K, world_to_cam, means_lr, width=width, height=height,
+                          optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn)
+
+    return optimizers, jax.jit(step, static_argnames=("raster_cfg", "width", "height"))
+
+
+_KEY_CONFIGS: dict = {}
+
+
+def make_train_step(config, render_fn=None):
+    """(optimizers, jitted step(state, image, K, w2c, means_lr, raster_cfg, width, height)). The
+    step compiles once per pool capacity, image size and pair capacity (raster_cfg is
+    static); runs with the same optimiser and loss settings share the compiled step."""
+    key = _step_key(config)
+    _KEY_CONFIGS.setdefault(key, config)
+    return _cached_step(key, render_fn)
+
+
+@functools.partial(jax.jit, static_argnames=("raster_cfg",))
+def render_active(params, active, camera: Camera, raster_cfg):
+    """Render the live surfels of a training state (for evaluation inside a run)."""
+    from ghsplat_jax.raster.render import render
+
+    return render(render_params(params, active, camera.world_to_cam), camera, raster_cfg)

@@ -1,0 +1,77 @@
+"""Reports and charts from metrics.json files (no rendering), and the experiment file parser."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from ghsplat_jax.eval.charts import write_charts
+from ghsplat_jax.eval.metrics import image_metrics, summarize
+from ghsplat_jax.eval.report import collect_runs, table1_markdown, write_results, write_table1
+from ghsplat_jax.eval.runner import load_experiment
+from ghsplat_jax.train.config import ConfigError
+
+
+def _fake_run(folder, psnr, l1, n, test=True):
+    folder.mkdir(parents=True)
+    split = {"psnr": psnr, "l1": l1, "ssim": 0.9, "num_views": 3}
+    (folder / "metrics.json").write_text(json.dumps({
+        "train": split, "test": split if test else {"psnr": None, "l1": None, "ssim": None, "num_views": 0},
+        "num_gaussians": n, "train_seconds": 100.0 * n / 1000, "steps": 300}))
+    return folder
+
+
+def test_table1_and_results_tables(tmp_path):
+    runs = [_fake_run(tmp_path / "seg_a", 30.5, 0.015, 300_000), _fake_run(tmp_path / "seg_b", 28.25, 0.021, 410_000),
+            _fake_run(tmp_path / "seg_c", 25.0, 0.03, 1000, test=False), tmp_path / "unfinished"]
+    rows = collect_runs(runs)
+    assert [r["scene"] for r in rows] == ["seg_a", "seg_b", "seg_c"]
+    assert rows[2]["split"] == "train"
+    md, csv_path = write_table1(rows, tmp_path / "report")
+    text = md.read_text()
+    assert "| seg_a | 0.0150 | 30.50 | 300,000 |" in text
+    assert "L1 0.0150-0.0300, PSNR 25.00-30.50 dB" in text and "27.9-32.1" in text
+    table = list(csv.DictReader(csv_path.open()))
+    assert table[1]["segment"] == "seg_b" and float(table[1]["psnr"]) == 28.25 and table[1]["num_gaussians"] == "410000"
+    paths = write_results(rows, tmp_path / "report")
+    assert all(p.is_file() for p in paths)
+    charts = write_charts(rows, tmp_path / "report", "t")
+    assert {p.name for p in charts} == {"psnr_vs_time.png", "psnr_vs_count.png"}
+    assert all(p.read_bytes()[:4] == b"\x89PNG" for p in charts)
+    assert "Gaussians" in table1_markdown(rows)
+
+
+def test_metrics_and_summary():
+    import numpy as np
+
+    a = np.full((24, 32, 3), 0.5, np.float32)
+    m = image_metrics(a + 0.1, a)
+    assert m["psnr"] == pytest.approx(20.0, abs=1e-3) and m["l1"] == pytest.approx(0.1, abs=1e-6)
+    assert image_metrics(a, a)["ssim"] == pytest.approx(1.0, abs=1e-5)
+    assert image_metrics(a + 2.0, a)["l1"] == pytest.approx(0.5, abs=1e-6)  # renders are clipped to [0, 1]
+    s = summarize([{"psnr": 20, "l1": 0.1, "ssim": 0.5}, {"psnr": 30, "l1": 0.3, "ssim": 0.7}])
+    assert s == {"psnr": 25.0, "l1": pytest.approx(0.2), "ssim": pytest.approx(0.6), "num_views": 2}
+    assert summarize([])["num_views"] == 0
+
+
+def test_experiment_files_parse(tmp_path):
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "experiments"
+    for name in ("table1", "quick_cpu", "full_gpu"):
+        exp = load_experiment(root / f"{name}.toml", output=tmp_path / name)
+        assert exp.runs and all(r.config.data for r in exp.runs)
+    quick = load_experiment(root / "quick_cpu.toml", output=tmp_path)
+    budget = [r for r in quick.runs if r.variant == "budget"]
+    assert budget and all(r.config.strategy == "budget" and r.config.steps == 300 for r in budget)
+    assert {r.config.data for r in load_experiment(root / "table1.toml").runs} == {
+        "llff_fern", "nerf_synthetic_lego", "ngp_fox", "lund_door"}
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[[scenes]]\nname = "a"\ndata = "d"\ntrain = { stepz = 3 }\n')
+    with pytest.raises(ConfigError, match="bad.toml.*stepz"):
+        load_experiment(bad)
+    bad.write_text('name = "x"\n')
+    with pytest.raises(ConfigError, match="scenes"):
+        load_experiment(bad)

@@ -1,0 +1,152 @@
+"""The training loop on a tiny synthetic scene: loss goes down, no recompilation across
+steps and densification, resume reproduces the state, non-finite steps roll back."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+
+import jax
+import numpy as np
+import pytest
+
+from ghsplat_jax.train import densify, step as step_mod
+from ghsplat_jax.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, read_meta
+from ghsplat_jax.train.config import TrainConfig
+from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+from ghsplat_jax.train.trainer import PLY_NAME, STATS_NAME, TrainingDivergedError, train
+
+# Every test here uses this config (same step settings: the compiled step is shared).
+CONFIG = TrainConfig(steps=30, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
+                     sh_increase_every=10, densify_from=4, densify_every=4, densify_until=25,
+                     opacity_reset_every=1000, lambda_dist=1.0, dist_from=8, lambda_normal=0.05, normal_from=8,
+                     initial_capacity=2048, pair_capacity=16384, init_random_points=200, progress=False,
+                     checkpoint_every=10)
+
+
+def dataset():
+    return cached_synthetic_dataset(num_views=6, width=32, height=24, num_surfels=40, test_every=3, num_points=200)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    traces0 = step_mod.TRACE_COUNTS["train_step"]
+    dens0 = densify.TRACE_COUNTS["densify"]
+    result = train(CONFIG, out, dataset=dataset())
+    stats = [json.loads(line) for line in (out / STATS_NAME).read_text().splitlines()]
+    return dict(out=out, result=result, stats=stats, traces=step_mod.TRACE_COUNTS["train_step"] - traces0,
+                dens_traces=densify.TRACE_COUNTS["densify"] - dens0)
+
+
+def test_loss_decreases_and_outputs_written(run):
+    stats, out = run["stats"], run["out"]
+    assert [s["step"] for s in stats] == list(range(1, 31))
+    # (the total loss jumps when the normal and distortion terms switch on: compare L1 and PSNR)
+    first, last = stats[:5], stats[-5:]
+    assert np.mean([s["l1"] for s in last]) < 0.8 * np.mean([s["l1"] for s in first])
+    assert np.mean([s["psnr"] for s in last]) > np.mean([s["psnr"] for s in first]) + 3.0
+    assert all(s["finite"] for s in stats)
+    from ghsplat_jax.scene.ply import load_ply
+
+    s = load_ply(out / PLY_NAME)
+    assert s.num == run["result"].num_surfels == stats[-1]["num_surfels"]
+    assert np.all(np.isfinite(s.means))
+    assert read_meta(out / CHECKPOINT_NAME)["step"] == 30
+    assert (out / "config.toml").is_file()
+
+
+def test_no_recompilation_across_steps_and_densification(run):
+    stats = run["stats"]
+    rounds = [s for s in stats if "cloned" in s]
+    assert len(rounds) >= 4 and sum(s["cloned"] + s["split"] for s in rounds) > 0  # densification happened
+    counts = [s["num_surfels"] for s in stats]
+    assert len(set(counts)) > 1  # the count changed ...
+    buckets = {(s["capacity"], s["pair_capacity"]) for s in stats}
+    assert run["traces"] == len(buckets)  # ... but the step compiled once per pool / pair bucket
+    assert run["dens_traces"] <= len({s["capacity"] for s in stats})
+
+
+def test_resume_reproduces_state(run, tmp_path):
+    out = tmp_path / "resumed"
+    part = train(CONFIG, out, dataset=dataset(), until=13)
+    assert part.steps == 13 and not (out / PLY_NAME).exists()
+    assert read_meta(out / CHECKPOINT_NAME)["step"] == 13
+    done = train(CONFIG, out, dataset=dataset(), resume=True)
+    assert done.steps == 30
+    a, b = run["result"].state, done.state
+    assert a.capacity == b.capacity
+    np.testing.assert_array_equal(np.asarray(a.active), np.asarray(b.active))
+    for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(b.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+    lines = (out / STATS_NAME).read_text().splitlines()
+    assert [json.loads(x)["step"] for x in lines] == list(range(1, 31))
+
+
+def test_nan_step_rolls_back(tmp_path, caplog):
+    ds = dataset()
+    bad_view = dataclasses.replace(ds.train[0], image=np.full_like(ds.train[0].image, np.nan))
+    bad = dataclasses.replace(ds, train=[bad_view] + ds.train[1:])
+    with caplog.at_level(logging.WARNING, logger="ghsplat.train"):
+        r = train(CONFIG, tmp_path / "nan", dataset=bad, until=10)
+    assert r.rollbacks >= 1 and "rolled back" in caplog.text
+    stats = [json.loads(line) for line in (tmp_path / "nan" / STATS_NAME).read_text().splitlines()]
+    assert sum(bool(s.get("rolled_back")) for s in stats) == r.rollbacks
+    assert any(s["loss"] is None for s in stats)  # NaN is written as null, never as NaN
+    state, _ = load_checkpoint(tmp_path / "nan" / CHECKPOINT_NAME, r.state)
+    act = np.asarray(state.active)
+    for leaf in jax.tree_util.tree_leaves(state.params):
+        assert np.all(np.isfinite(np.asarray(leaf)[act]))
+    all_bad = dataclasses.replace(ds, train=[bad_view] * len(ds.train))
+    with pytest.raises(TrainingDivergedError, match="diverged"):
+        train(dataclasses.replace(CONFIG, max_consecutive_rollbacks=3), tmp_path / "div", dataset=all_bad)
+
+
+def test_depth_normal_agrees_with_rendered_normal_of_a_tilted_surfel():
+    import ghsplat_jax as gs
+    from ghsplat_jax.core.quaternions import from_rotation_matrix
+    from ghsplat_jax.train import losses
+
+    a = np.deg2rad(30)
+    tilt = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    rot = tilt @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])  # normal (3rd column) towards -y, tilted 30 deg
+    s = gs.make_surfels([[0, 0, 0]], quats=[from_rotation_matrix(rot)], log_scales=[[np.log(2.0)] * 2],
+                        opacity_logits=[5.0], sh_dc=[[1, 1, 1]])
+    cam = gs.Camera(gs.intrinsics(32, 24, 40), gs.look_at([0, -4, 0], [0, 0, 0]), 32, 24)
+    out = gs.render(s, cam, gs.RasterConfig())
+    dn = np.asarray(losses.depth_to_normal(out.depth, cam.K, cam.world_to_cam))
+    np.testing.assert_allclose(dn[12, 16], rot[:, 2], atol=1e-3)  # both face the camera
+    np.testing.assert_allclose(np.asarray(out.normal[12, 16]) / float(out.alpha[12, 16]), rot[:, 2], atol=2e-2)
+    good = float(losses.normal_consistency(out.normal[8:-8, 8:-8], dn[8:-8, 8:-8], out.alpha[8:-8, 8:-8]))
+    flipped = float(losses.normal_consistency(out.normal[8:-8, 8:-8], -dn[8:-8, 8:-8], out.alpha[8:-8, 8:-8]))
+    assert good < 0.1 < 1.5 < flipped
+
+
+def test_ctrl_c_saves_a_checkpoint(tmp_path, monkeypatch):
+    from ghsplat_jax.train import trainer
+
+    real_step = trainer._Session.step
+
+    def step(self, i):
+        if i == 5:
+            raise KeyboardInterrupt
+        return real_step(self, i)
+
+    monkeypatch.setattr(trainer._Session, "step", step)
+    with pytest.raises(KeyboardInterrupt):
+        train(CONFIG, tmp_path / "int", dataset=dataset())
+    assert read_meta(tmp_path / "int" / CHECKPOINT_NAME)["step"] == 5
+    lines = (tmp_path / "int" / STATS_NAME).read_text().splitlines()
+    assert json.loads(lines[-1])["step"] == 5
+
+
+def test_pair_overflow_discards_the_step_and_grows_the_buffer(tmp_path, caplog):
+    before = step_mod.TRACE_COUNTS["train_step"]
+    with caplog.at_level(logging.INFO, logger="ghsplat.train"):
+        r = train(CONFIG.replace(pair_capacity=64), tmp_path / "ovf", dataset=dataset(), until=3)
+    assert "overflowed" in caplog.text and r.steps == 3
+    stats = [json.loads(line) for line in (tmp_path / "ovf" / STATS_NAME).read_text().splitlines()]
+    assert all(s["overflow"] == 0 and s["num_pairs"] <= s["pair_capacity"] for s in stats)  # nothing dropped
+    assert stats[0]["pair_capacity"] >= 4096 and len({s["pair_capacity"] for s in stats}) == 1
+    assert step_mod.TRACE_COUNTS["train_step"] - before == 2  # the 64-pair bucket and the grown one

@@ -1,0 +1,243 @@
+"""Training building blocks without the rasterizer: losses, schedules, config, densification
+invariants, opacity reset, pool growth, checkpoints and trace counting."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ghsplat_jax.core.quaternions import to_rotation_matrix
+from ghsplat_jax.core.surfels import Surfels
+from ghsplat_jax.train import checkpoint, densify, losses, optim
+from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides, load_config, save_config
+from ghsplat_jax.train.state import INACTIVE_LOGIT, grow, knn_log_scales, new_state, pad_params
+
+
+# --- losses -----------------------------------------------------------------------------------
+def _ssim_reference(a, b, size=11, sigma=1.5):
+    """float64 SSIM with a zero-padded Gaussian window, written straight from the definition."""
+    x = np.arange(size) - size // 2
+    g = np.exp(-(x**2) / (2 * sigma**2))
+    w = np.outer(g, g) / np.sum(g) ** 2
+    h, wd, c = a.shape
+    r = size // 2
+
+    def blur(img):
+        p = np.pad(img, ((r, r), (r, r), (0, 0)))
+        out = np.zeros_like(img)
+        for i in range(size):
+            for j in range(size):
+                out += w[i, j] * p[i:i + h, j:j + wd]
+        return out
+
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    mu_a, mu_b = blur(a), blur(b)
+    va, vb, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    return np.mean((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (va + vb + c2)))
+
+
+def test_ssim_identical_is_one_and_matches_float64_reference():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 1, (20, 27, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.25, a.shape), 0, 1).astype(np.float32)
+    assert float(losses.ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
+    ref = _ssim_reference(a, b)
+    assert 0.3 < ref < 0.95
+    assert float(losses.ssim(a, b)) == pytest.approx(ref, abs=2e-4)
+
+
+def test_psnr_and_l1_known_values():
+    a = np.zeros((4, 4, 3), np.float32)
+    b = np.full((4, 4, 3), 0.1, np.float32)
+    assert float(losses.psnr(a, b)) == pytest.approx(20.0, abs=1e-3)  # mse 0.01
+    assert float(losses.l1(a, b)) == pytest.approx(0.1, abs=1e-6)
+
+
+def test_depth_normal_of_a_plane_faces_the_camera():
+    from ghsplat_jax.core.camera import intrinsics, look_at
+
+    K = jnp.asarray(intrinsics(16, 12))
+    w2c = jnp.asarray(look_at([0.3, -3.0, 1.0], [0.3, 0.0, 1.0]))  # looking along +y
+    n = losses.depth_to_normal(jnp.full((12, 16), 3.0), K, w2c)
+    assert np.allclose(np.asarray(n[1:-1, 1:-1]), [0, -1, 0], atol=1e-4)  # towards the camera
+    assert np.all(np.asarray(n[0]) == 0)
+    # A plane normal to the view: full alpha gives zero normal loss for the matching render.
+    loss = losses.normal_consistency(n, n, jnp.ones((12, 16)))
+    interior = (12 * 16 - (12 * 16 - 10 * 14)) / (12 * 16)
+    assert float(loss) == pytest.approx(1 - interior, abs=1e-4)
+    g = jax.grad(lambda d: jnp.sum(losses.depth_to_normal(d, K, w2c)))(jnp.zeros((12, 16)))
+    assert np.all(np.isfinite(np.asarray(g)))  # zero depth: double-where keeps gradients finite
+
+
+# --- schedules and config -----------------------------------------------------------------------
+def test_means_learning_rate_schedule_endpoints():
+    cfg = TrainConfig(steps=30_000)
+    sched = optim.means_schedule(cfg, scene_extent=4.0)
+    assert float(sched(0)) == pytest.approx(1.6e-4 * 4.0, rel=1e-5)
+    assert float(sched(30_000)) == pytest.approx(1.6e-6 * 4.0, rel=1e-4)
+    assert float(sched(15_000)) == pytest.approx(math.sqrt(1.6e-4 * 1.6e-6) * 4.0, rel=1e-3)  # log-linear
+    assert float(sched(60_000)) == pytest.approx(1.6e-6 * 4.0, rel=1e-4)
+    lrs = optim.learning_rates(cfg)
+    assert lrs["sh_rest"] == pytest.approx(2.5e-3 / 20) and lrs["opacity_logits"] == 0.05
+
+
+def test_config_overrides_save_and_errors(tmp_path):
+    p = tmp_path / "exp.toml"
+    p.write_text('steps = 500\nstrategy = "budget"\nbackground = [1, 1, 1]\n')
+    cfg = load_config(p)
+    assert cfg.steps == 500 and cfg.strategy == "budget" and cfg.background == (1.0, 1.0, 1.0)
+    save_config(cfg, tmp_path / "config.toml")
+    assert load_config(tmp_path / "config.toml") == cfg
+    p.write_text("stepz = 3\n")
+    with pytest.raises(ConfigError, match="exp.toml.*stepz"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="strategy"):
+        apply_overrides(cfg, {"strategy": "mcmc"})
+    with pytest.raises(ConfigError, match="integer"):
+        apply_overrides(cfg, {"steps": "many"})
+    short = TrainConfig(steps=3000, scale_schedule=True).resolved()
+    assert (short.densify_from, short.densify_until, short.densify_every, short.opacity_reset_every) == (50, 1500, 10,
+                                                                                                        300)
+    assert not short.scale_schedule and short.normal_from == 700
+
+
+# --- densification -------------------------------------------------------------------------------
+CAP = 16
+PARAMS = densify.DensifyParams(grad_threshold=2e-4, clone_max_scale=0.1, split_scale_div=1.6, prune_opacity=0.05,
+                               prune_world_scale=1.0, prune_screen_px=20.0)
+
+
+def _state(n_active=4, scales=(0.05, 0.05, 0.5, 0.5), grads=(1e-3, 0.0, 1e-3, 0.0), opacity=0.5):
+    rng = np.random.default_rng(1)
+    s = Surfels(
+        means=rng.normal(size=(n_active, 3)).astype(np.float32),
+        quats=rng.normal(size=(n_active, 4)).astype(np.float32),
+        log_scales=np.log(np.stack([np.asarray(scales), 0.5 * np.asarray(scales)], 1)).astype(np.float32),
+        opacity_logits=np.full(n_active, math.log(opacity / (1 - opacity)), np.float32),
+        sh_dc=rng.normal(size=(n_active, 3)).astype(np.float32),
+        sh_rest=np.zeros((n_active, 3, 3), np.float32),
+    )
+    params, active = pad_params(s, CAP)
+    st = new_state(params, active, optim.make_optimizers(TrainConfig()))
+    # Non-zero Adam moments so resets are visible.
+    opt = jax.tree_util.tree_map(lambda x: x + 1.0 if x.ndim else x, st.opt_state)
+    g = np.zeros(CAP, np.float32)
+    g[:n_active] = grads
+    return dataclasses.replace(st, opt_state=opt, grad_accum=jnp.asarray(g * 2), grad_count=jnp.full(CAP, 2.0),
+                               max_radii=jnp.full(CAP, 5.0))
+
+
+def test_clone_keeps_position_and_split_halves_in_tangent_plane():
+    st = _state()
+    key = jax.random.PRNGKey(0)
+    new, counts = densify.densify_jit(st, key, jnp.int32(CAP), jnp.bool_(False), p=PARAMS)
+    assert int(counts["cloned"]) == 1 and int(counts["split"]) == 1 and int(counts["pruned"]) == 0
+    act = np.asarray(new.active)
+    assert act.sum() == 6 and act[:4].all()
+    old, p = st.params.to_numpy(), new.params.to_numpy()
+    born = np.flatnonzero(act & ~np.asarray(st.active))
+    assert len(born) == 2
+    clone_slot = [b for b in born if np.allclose(p.log_scales[b], old.log_scales[0])]
+    assert len(clone_slot) == 1
+    np.testing.assert_array_equal(p.means[clone_slot[0]], old.means[0])  # clone: same position
+    np.testing.assert_array_equal(p.means[0], old.means[0])  # original untouched
+    child = [b for b in born if b != clone_slot[0]][0]
+    # split: parent slot 2 and a new slot, scales / 1.6, offsets in the parent's tangent plane
+    q = old.quats[2] / np.linalg.norm(old.quats[2])
+    normal = np.asarray(to_rotation_matrix(jnp.asarray(q)))[:, 2]
+    for slot in (2, child):
+        np.testing.assert_allclose(p.log_scales[slot], old.log_scales[2] - math.log(1.6), atol=1e-6)
+        offset = p.means[slot] - old.means[2]
+        assert abs(offset @ normal) < 1e-5 * max(1.0, np.linalg.norm(offset))
+        assert np.linalg.norm(offset) > 0
+        np.testing.assert_array_equal(p.sh_dc[slot], old.sh_dc[2])
+    assert not np.allclose(p.means[2], p.means[child])
+    # fresh moments for new and split rows, old ones kept for the others
+    mu = np.asarray(new.opt_state["means"][0].mu)
+    assert np.all(mu[[2, child, clone_slot[0]]] == 0) and np.all(mu[[0, 1, 3]] == 1)
+    assert np.all(np.asarray(new.grad_accum) == 0) and np.all(np.asarray(new.max_radii) == 0)
+
+
+def test_prune_and_capacity_limit_and_no_retrace():
+    before = densify.TRACE_COUNTS["densify"]
+    st = _state(opacity=0.5)
+    # lower one opacity below the threshold and make one huge
+    logits = st.params.opacity_logits.at[1].set(math.log(0.01 / 0.99))
+    st = dataclasses.replace(st, params=dataclasses.replace(st.params, opacity_logits=logits),
+                             max_radii=st.max_radii.at[3].set(50.0))
+    new, counts = densify.densify_jit(st, jax.random.PRNGKey(1), jnp.int32(CAP), jnp.bool_(True), p=PARAMS)
+    act = np.asarray(new.active)
+    assert not act[1] and not act[3] and act[0]  # transparent and oversized (screen) pruned
+    assert float(new.params.opacity_logits[1]) == INACTIVE_LOGIT
+    assert int(counts["pruned"]) == 2 and act.sum() == 4 + 2 - 2
+    # at most max_new new surfels: the highest-gradient candidate wins
+    g = st.grad_accum.at[2].set(10.0)
+    st2 = dataclasses.replace(_state(), grad_accum=g)
+    new2, counts2 = densify.densify_jit(st2, jax.random.PRNGKey(2), jnp.int32(1), jnp.bool_(False), p=PARAMS)
+    assert int(counts2["split"]) == 1 and int(counts2["cloned"]) == 0 and int(counts2["skipped"]) == 1
+    assert np.asarray(new2.active).sum() == 5
+    # a full pool: nothing born, bookkeeping consistent
+    full = _state(n_active=CAP, scales=[0.05] * CAP, grads=[1e-3] * CAP)
+    new3, counts3 = densify.densify_jit(full, jax.random.PRNGKey(3), jnp.int32(CAP), jnp.bool_(False), p=PARAMS)
+    assert int(counts3["cloned"]) == 0 and int(counts3["skipped"]) == CAP and np.asarray(new3.active).all()
+    assert densify.TRACE_COUNTS["densify"] - before <= 1  # same shapes: one trace at most
+
+
+def test_opacity_reset_and_budget_schedule():
+    st = _state(opacity=0.5)
+    new = densify.reset_opacity_jit(st, value=0.01)
+    op = np.asarray(jax.nn.sigmoid(new.params.opacity_logits))
+    assert np.allclose(op[:4], 0.01, atol=1e-6) and np.all(op[4:] < 1e-6)
+    assert np.all(np.asarray(new.opt_state["opacity_logits"][0].mu) == 0)
+    assert np.all(np.asarray(new.opt_state["means"][0].mu)[:4] == 1)
+    cfg = TrainConfig(strategy="budget", densify_from=500, densify_until=1500)
+    assert densify.budget_target(cfg, 500, 100, 1100) == 100
+    assert densify.budget_target(cfg, 1000, 100, 1100) == 600
+    assert densify.budget_target(cfg, 5000, 100, 1100) == 1100
+
+
+def test_grow_pool_and_knn_init():
+    st = _state()
+    g = grow(st, 2 * CAP)
+    assert g.capacity == 2 * CAP and np.asarray(g.active).sum() == 4
+    np.testing.assert_array_equal(np.asarray(g.params.means[:CAP]), np.asarray(st.params.means))
+    assert np.all(np.asarray(g.opt_state["sh_dc"][0].nu)[CAP:] == 0)
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3], [10, 10, 10]], np.float32)
+    ls = knn_log_scales(pts)
+    assert ls[0] == pytest.approx(0.5 * math.log((1 + 4 + 9) / 3), rel=1e-5)
+
+
+def test_checkpoint_roundtrip_and_refuses_nan(tmp_path):
+    st = _state()
+    path = checkpoint.save_checkpoint(tmp_path / "c.npz", st, {"step": 3, "capacity": CAP})
+    template = _state(grads=(0, 0, 0, 0))
+    back, meta = checkpoint.load_checkpoint(path, template)
+    assert meta["step"] == 3
+    for a, b in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(back)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    bad = dataclasses.replace(st, params=dataclasses.replace(st.params, means=st.params.means.at[0, 0].set(jnp.nan)))
+    with pytest.raises(checkpoint.CheckpointError, match="non-finite"):
+        checkpoint.save_checkpoint(tmp_path / "d.npz", bad, {})
+    assert not (tmp_path / "d.npz").exists()
+    (tmp_path / "e.npz").write_bytes(b"junk")
+    with pytest.raises(checkpoint.CheckpointError, match="e.npz"):
+        checkpoint.read_meta(tmp_path / "e.npz")
+
+
+def test_opacity_reset_recovery_window():
+    from ghsplat_jax.train.trainer import last_reset_before
+
+    c = TrainConfig()
+    # 2DGS: resets at 3000, 6000, ...; the round at 3000 runs before that reset, 3100 is 100 steps after.
+    assert last_reset_before(c, 3000) is None and last_reset_before(c, 3100) == 3000
+    assert last_reset_before(c, 20_000) == 12_000  # no resets after densify_until
+    white = TrainConfig(background=(1.0, 1.0, 1.0))
+    assert last_reset_before(white, 600) == 500  # white backgrounds also reset at densify_from
+    short = TrainConfig(steps=300, scale_schedule=True).resolved()
+    assert 2 * short.opacity_reset_every >= short.densify_until  # at most one reset in a 300-step run
