@@ -32,6 +32,9 @@ def dataset():
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
+    # A fresh compiled step, so the trace count below is this run's alone even when another
+    # test in the session already compiled the same step settings.
+    step_mod._cached_step.cache_clear()
     traces0 = step_mod.TRACE_COUNTS["train_step"]
     dens0 = densify.TRACE_COUNTS["densify"]
     result = train(CONFIG, out, dataset=dataset())

@@ -23,7 +23,7 @@ SETTINGS = {  # quick: about two minutes; full: about ten on a 2-core CPU
     "quick": dict(plants=3, views=12, size=(128, 96), downscale=1, points=3000, steps=200, sfm=False,
                   sim_frames=4, loc_frames=6),
     # SIFT needs some resolution: photos at 384x288, training at half that.
-    "full": dict(plants=4, views=32, size=(384, 288), downscale=2, points=8000, steps=1200, sfm=True,
+    "full": dict(plants=4, views=32, size=(384, 288), downscale=2, points=6000, steps=800, sfm=True,
                  sim_frames=10, loc_frames=20),
 }
 
@@ -72,6 +72,7 @@ def _row_box(tags_file: Path) -> tuple[list[float], list[float]]:
 
 
 def _layout_toml(ply: Path, lo, hi) -> str:
+    """Two copies of the row, a floor, and tags beyond both row ends facing back along the aisles."""
     length = hi[0] - lo[0]
     return f"""overlap = "warn"
 [[rows]]
@@ -94,13 +95,25 @@ colour = [0.42, 0.33, 0.24]
 [[markers]]
 id = 0
 size = 0.16
-position = [{length + 0.6}, 0.0, 0.45]
-facing = [1, 0, 0]
+position = [{length + 1.0}, 0.3, 0.45]
+facing = [-1, 0, 0]
 backing = true
 [[markers]]
 id = 1
 size = 0.16
-position = [{length + 0.6}, 1.6, 0.45]
+position = [{length + 1.0}, 1.3, 0.45]
+facing = [-1, 0, 0]
+backing = true
+[[markers]]
+id = 2
+size = 0.16
+position = [-1.0, 0.3, 0.45]
+facing = [1, 0, 0]
+backing = true
+[[markers]]
+id = 3
+size = 0.16
+position = [-1.0, 1.3, 0.45]
 facing = [1, 0, 0]
 backing = true
 """
