@@ -236,7 +236,9 @@ def write_report(out: Path, mode, times, metrics, sfm_report, views, total) -> N
         summary = summary.get("summary", summary)
         for key in ("availability", "median_position_error_m", "median_yaw_error_deg"):
             if key in summary:
-                lines.append(f"| localization {key.replace('_', ' ')} | {summary[key]} |")
+                value = summary[key]
+                value = f"{value:.3g}" if isinstance(value, float) else value
+                lines.append(f"| localization {key.replace('_', ' ')} | {value} |")
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in times.items()]
     images = [("ground truth view", _first(out / "row" / "images", "*.png")),
