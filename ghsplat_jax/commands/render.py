@@ -40,18 +40,17 @@ def _cameras(args):
 def render_to_files(surfels, camera, cfg, out: Path, name: str) -> dict[str, Path]:
     """Render one view and write rgb PNG, depth EXR + PNG, normal PNG, alpha PNG."""
     import ghsplat_jax as gs
-    from ghsplat_jax.commands.visualize import depth_to_rgb, normal_to_rgb
     from ghsplat_jax.data.images import write_image
+    from ghsplat_jax.eval.evaluate import depth_colormap, normal_colormap
 
     o = gs.render(surfels, camera, cfg)
     rgb, alpha, depth = np.asarray(o.rgb), np.asarray(o.alpha), np.asarray(o.depth)
-    normal = np.asarray(o.normal) / np.maximum(alpha[..., None], 1e-6)
     return {
         "rgb": write_image(out / f"{name}_rgb.png", rgb),
         "alpha": write_image(out / f"{name}_alpha.png", alpha),
         "depth": write_image(out / f"{name}_depth.exr", depth),
-        "depth_vis": write_image(out / f"{name}_depth.png", depth_to_rgb(depth, alpha)),
-        "normal": write_image(out / f"{name}_normal.png", normal_to_rgb(normal) * (alpha[..., None] > 0.5)),
+        "depth_vis": write_image(out / f"{name}_depth.png", depth_colormap(depth, alpha)),
+        "normal": write_image(out / f"{name}_normal.png", normal_colormap(o.normal, alpha)),
     }
 
 

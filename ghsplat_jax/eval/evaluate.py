@@ -41,6 +41,11 @@ def depth_colormap(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return rgb * covered[..., None]
 
 
+def normal_colormap(normal: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Alpha-weighted world normals shown as (n + 1) / 2 over alpha."""
+    return np.clip(np.asarray(normal) * 0.5 + 0.5 * np.asarray(alpha)[..., None], 0, 1).astype(np.float32)
+
+
 def save_view_maps(folder: Path, name: str, out) -> None:
     """rgb PNG, colour-mapped depth PNG + raw depth EXR, normal PNG ((n + 1) / 2 over alpha)."""
     from ghsplat_jax.data.images import write_image
@@ -54,7 +59,7 @@ def save_view_maps(folder: Path, name: str, out) -> None:
     write_image(folder / f"{stem}.png", rgb)
     write_image(folder / f"{stem}_depth.png", depth_colormap(depth, alpha))
     write_image(folder / f"{stem}_depth.exr", depth[..., None], dtype="float")
-    write_image(folder / f"{stem}_normal.png", np.clip(normal * 0.5 + 0.5 * alpha[..., None], 0, 1))
+    write_image(folder / f"{stem}_normal.png", normal_colormap(normal, alpha))
 
 
 def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = None, steps: int | None = None,
