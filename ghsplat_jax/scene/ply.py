@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.core import quaternions
 from ghsplat_jax.core.surfels import Surfels, sh_degree_from_rest
 from ghsplat_jax.io_utils import atomic_write
 
@@ -142,12 +143,7 @@ def _surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.nd
     dropped = np.argmin(log_scales3, axis=1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[dropped]
     scales = np.take_along_axis(log_scales3, keep, axis=1)
-    a, b = quats, _TO_NORMAL[dropped]
-    product = np.stack([
-        a[:, 0] * b[:, 0] - a[:, 1] * b[:, 1] - a[:, 2] * b[:, 2] - a[:, 3] * b[:, 3],
-        a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0] + a[:, 2] * b[:, 3] - a[:, 3] * b[:, 2],
-        a[:, 0] * b[:, 2] - a[:, 1] * b[:, 3] + a[:, 2] * b[:, 0] + a[:, 3] * b[:, 1],
-        a[:, 0] * b[:, 3] + a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1] + a[:, 3] * b[:, 0]], axis=1)
+    product = np.asarray(quaternions.multiply(quats, _TO_NORMAL[dropped]))
     return scales.astype(np.float32), product.astype(np.float32)
 
 
