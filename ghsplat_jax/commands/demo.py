@@ -92,31 +92,13 @@ max = [{length + 1.5}, 2.8, 0.0]
 faces = ["+z"]
 spacing = 0.04
 colour = [0.42, 0.33, 0.24]
-[[markers]]
-id = 0
-size = 0.16
-position = [{length + 1.0}, 0.3, 0.45]
-facing = [-1, 0, 0]
-backing = true
-[[markers]]
-id = 1
-size = 0.16
-position = [{length + 1.0}, 1.3, 0.45]
-facing = [-1, 0, 0]
-backing = true
-[[markers]]
-id = 2
-size = 0.16
-position = [-1.0, 0.3, 0.45]
-facing = [1, 0, 0]
-backing = true
-[[markers]]
-id = 3
-size = 0.16
-position = [-1.0, 1.3, 0.45]
-facing = [1, 0, 0]
-backing = true
-"""
+""" + "".join(_marker_toml(i, x, y, facing) for i, (x, y, facing) in enumerate(
+        [(length + 1.0, 0.3, -1), (length + 1.0, 1.3, -1), (-1.0, 0.3, 1), (-1.0, 1.3, 1)]))
+
+
+def _marker_toml(tag_id: int, x: float, y: float, facing_x: int) -> str:
+    return (f"[[markers]]\nid = {tag_id}\nsize = 0.16\nposition = [{x}, {y}, 0.45]\n"
+            f"facing = [{facing_x}, 0, 0]\nbacking = true\n")
 
 
 def _poses(model: Path) -> dict:
