@@ -66,6 +66,35 @@ def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25) -> int:
     return capacity_bucket(int(needed * headroom))
 
 
+def sensor_config(raster_config, pair_capacity, background=(0.0, 0.0, 0.0)):
+    """The sensors' raster settings: a static pair capacity whose overflow is reported, not raised."""
+    import ghsplat_jax as gs
+
+    cfg = raster_config or gs.RasterConfig(near=0.2, background=tuple(background))
+    return dataclasses.replace(cfg, pair_capacity=pair_capacity, on_overflow="report")
+
+
+def sensor_render_fn(render_fn, cfg):
+    """`render_fn` (a test fake) or the rasterizer with `cfg`."""
+    if render_fn is not None:
+        return render_fn
+    import ghsplat_jax as gs
+
+    return lambda surfels, cam: gs.render(surfels, cam, cfg)
+
+
+def initial_capacity(render_fn, surfels, cameras, cfg) -> int:
+    """First pair capacity: an exact count for the rasterizer; a fixed guess for a fake renderer."""
+    return 1 << 14 if render_fn is not None else counted_capacity(surfels, cameras, cfg)
+
+
+def grown_capacity(pairs: int) -> int:
+    """Capacity after an overflow of `pairs` needed pairs (10% headroom)."""
+    from ghsplat_jax.raster import capacity_bucket
+
+    return capacity_bucket(int(pairs * 1.1))
+
+
 @dataclasses.dataclass
 class CameraFrame:
     stamp: float
@@ -94,18 +123,7 @@ class CameraRenderer:
         self._fns: dict[tuple[int, int], Callable] = {}
 
     def _config(self):
-        import ghsplat_jax as gs
-
-        cfg = self._raster_config or gs.RasterConfig(near=0.2, background=self._background)
-        return dataclasses.replace(cfg, pair_capacity=self.pair_capacity, on_overflow="report")
-
-    def _render(self):
-        if self._render_fn is not None:
-            return self._render_fn
-        import ghsplat_jax as gs
-
-        cfg = self._config()
-        return lambda surfels, cam: gs.render(surfels, cam, cfg)
+        return sensor_config(self._raster_config, self.pair_capacity, self._background)
 
     def _fn(self, width: int, height: int):
         key = (width, height)
@@ -115,7 +133,7 @@ class CameraRenderer:
 
             from ghsplat_jax.core.camera import Camera
 
-            render = self._render()
+            render = sensor_render_fn(self._render_fn, self._config())
 
             def many(surfels, Ks, w2cs):
                 self.traces += 1  # runs only while tracing
@@ -141,19 +159,15 @@ class CameraRenderer:
             Ks = np.stack([models[i].matrix for i in idx]).astype(np.float32)
             w2cs = np.stack([frames.world_to_cam(poses[i]) for i in idx])
             if self.pair_capacity is None:
-                self.pair_capacity = 1 << 14
-                if self._render_fn is None:
-                    from ghsplat_jax.core.camera import Camera
+                from ghsplat_jax.core.camera import Camera
 
-                    self.pair_capacity = counted_capacity(
-                        surfels, [Camera(K, w, W, H) for K, w in zip(Ks, w2cs)], self._config())
+                cams = [Camera(K, w, W, H) for K, w in zip(Ks, w2cs)]
+                self.pair_capacity = initial_capacity(self._render_fn, surfels, cams, self._config())
             for _ in range(8):
                 rgb, alpha, depth, normal, overflow, pairs = self._fn(W, H)(surfels, Ks, w2cs)
                 if int(overflow) == 0:
                     break
-                from ghsplat_jax.raster import capacity_bucket
-
-                self.pair_capacity = capacity_bucket(int(int(pairs) * 1.1))
+                self.pair_capacity = grown_capacity(int(pairs))
                 self._fns.clear()  # grow the pair buffer: one recompilation, never a partial image
             else:
                 raise RuntimeError("camera render kept overflowing its pair buffer")

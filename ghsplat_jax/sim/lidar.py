@@ -205,18 +205,9 @@ class Lidar:
         self._fn = None
 
     def _config(self):
-        import ghsplat_jax as gs
+        from ghsplat_jax.sim.camera_sensor import sensor_config
 
-        cfg = self._raster_config or gs.RasterConfig(near=0.2)
-        return dataclasses.replace(cfg, pair_capacity=self.pair_capacity, on_overflow="report")
-
-    def _make_render_fn(self):
-        if self._render_fn is not None:
-            return self._render_fn
-        import ghsplat_jax as gs
-
-        cfg = self._config()
-        return lambda surfels, cam: gs.render(surfels, cam, cfg)
+        return sensor_config(self._raster_config, self.pair_capacity)
 
     def _build(self):
         import jax
@@ -224,7 +215,9 @@ class Lidar:
 
         from ghsplat_jax.core.camera import Camera
 
-        render = self._make_render_fn()
+        from ghsplat_jax.sim.camera_sensor import sensor_render_fn
+
+        render = sensor_render_fn(self._render_fn, self._config())
         K = jnp.asarray(np.broadcast_to(self.geom.K, (4, 3, 3)), jnp.float32)
         W, H = self.geom.width, self.geom.height
 
@@ -256,15 +249,14 @@ class Lidar:
         import jax
 
         w2cs = self.world_to_cams(map_from_lidar)
-        if self.pair_capacity is None:
-            self.pair_capacity = 1 << 14
-            if self._render_fn is None:
-                from ghsplat_jax.core.camera import Camera
-                from ghsplat_jax.sim.camera_sensor import counted_capacity
+        from ghsplat_jax.sim.camera_sensor import grown_capacity, initial_capacity
 
-                K = np.asarray(self.geom.K, np.float32)
-                self.pair_capacity = counted_capacity(
-                    surfels, [Camera(K, w, self.geom.width, self.geom.height) for w in w2cs], self._config())
+        if self.pair_capacity is None:
+            from ghsplat_jax.core.camera import Camera
+
+            K = np.asarray(self.geom.K, np.float32)
+            cams = [Camera(K, w, self.geom.width, self.geom.height) for w in w2cs]
+            self.pair_capacity = initial_capacity(self._render_fn, surfels, cams, self._config())
         if self._fn is None:
             self._build()
         key = jax.random.PRNGKey(seed)
@@ -273,9 +265,7 @@ class Lidar:
             if int(overflow) == 0:
                 break
             # Grow the pair buffer and recompile once; never keep an incomplete render.
-            from ghsplat_jax.raster import capacity_bucket
-
-            self.pair_capacity = capacity_bucket(int(int(pairs) * 1.1))
+            self.pair_capacity = grown_capacity(int(pairs))
             self._build()
         else:
             raise RuntimeError("LiDAR render kept overflowing its pair buffer")
