@@ -42,9 +42,10 @@ def _ssim_reference(a, b, size=11, sigma=1.5):
     return np.mean((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (va + vb + c2)))
 
 
-def test_ssim_identical_is_one_and_matches_float64_reference():
+@pytest.mark.parametrize("shape", [(20, 27, 3), (70, 45, 2)])  # one blur block; several, cut mid-block
+def test_ssim_identical_is_one_and_matches_float64_reference(shape):
     rng = np.random.default_rng(0)
-    a = rng.uniform(0, 1, (20, 27, 3)).astype(np.float32)
+    a = rng.uniform(0, 1, shape).astype(np.float32)
     b = np.clip(a + rng.normal(0, 0.25, a.shape), 0, 1).astype(np.float32)
     assert float(losses.ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
     ref = _ssim_reference(a, b)

@@ -27,24 +27,39 @@ def _gaussian_kernel(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.n
     return (g / g.sum()).astype(np.float32)
 
 
+def _blur_last_axis(x: jax.Array, block: int = 32) -> jax.Array:
+    """1D Gaussian blur along the last axis with zero padding, as a banded matmul: the axis is
+    cut into blocks, each with its window of neighbours (block + 2r), times one (block + 2r,
+    block) band matrix. XLA:CPU runs this about 10x faster than a 1-channel convolution and its
+    gradient is matmuls too (a chain of shifted adds gets re-fused into every consumer)."""
+    kernel = _gaussian_kernel()
+    r = len(kernel) // 2
+    n = x.shape[-1]
+    nb = -(-n // block)
+    lead = x.shape[:-1]
+    xp = jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(r, nb * block - n + block + r)])
+    blocks = lambda start: xp[..., start:start + nb * block].reshape(lead + (nb, block))
+    window = jnp.concatenate([blocks(0)[..., :r], blocks(r), blocks(block + r)[..., :r]], axis=-1)
+    offset = np.arange(block + 2 * r)[:, None] - np.arange(block)[None] - r
+    band = np.where(np.abs(offset) <= r, kernel[np.clip(offset + r, 0, 2 * r)], 0.0).astype(np.float32)
+    return (window @ jnp.asarray(band)).reshape(lead + (nb * block,))[..., :n]
+
+
 def _blur(x: jax.Array) -> jax.Array:
-    """Separable Gaussian blur of (C,H,W) planes with zero padding (as the 3DGS SSIM)."""
-    k = jnp.asarray(_gaussian_kernel())
-    x = x[:, None]  # (C,1,H,W): every channel on its own
-    dn = ("NCHW", "OIHW", "NCHW")
-    x = jax.lax.conv_general_dilated(x, k[None, None, :, None], (1, 1), "SAME", dimension_numbers=dn)
-    x = jax.lax.conv_general_dilated(x, k[None, None, None, :], (1, 1), "SAME", dimension_numbers=dn)
-    return x[:, 0]
+    """Separable Gaussian blur of (..., H, W) planes with zero padding (as the 3DGS SSIM)."""
+    x = _blur_last_axis(x)
+    return jnp.swapaxes(_blur_last_axis(jnp.swapaxes(x, -1, -2)), -1, -2)
 
 
 def ssim_map(a: jax.Array, b: jax.Array) -> jax.Array:
     """Per-pixel SSIM (H,W,C) of (H,W,C) images; 11x11 Gaussian window, sigma 1.5."""
     a = jnp.moveaxis(a, -1, 0)
     b = jnp.moveaxis(b, -1, 0)
-    mu_a, mu_b = _blur(a), _blur(b)
-    var_a = _blur(a * a) - mu_a**2
-    var_b = _blur(b * b) - mu_b**2
-    cov = _blur(a * b) - mu_a * mu_b
+    blurred = _blur(jnp.concatenate([a, b, a * a, b * b, a * b]))
+    mu_a, mu_b, aa, bb, ab = jnp.split(blurred, 5)
+    var_a = aa - mu_a**2
+    var_b = bb - mu_b**2
+    cov = ab - mu_a * mu_b
     num = (2 * mu_a * mu_b + _C1) * (2 * cov + _C2)
     den = (mu_a**2 + mu_b**2 + _C1) * (var_a + var_b + _C2)
     return jnp.moveaxis(num / den, 0, -1)
