@@ -64,6 +64,25 @@ def test_train_and_eval_commands(data_dir, tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
 
 
+def test_eval_of_a_stopped_run_writes_a_snapshot(data_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    cfg = _config_file(tmp_path / "c.toml")
+    assert cli.main(["train", "--data", str(data_dir), "--out", str(out), "--config", str(cfg), "--no-progress",
+                     "--until", "12"]) == 0
+    assert not (out / "point_cloud.ply").exists() and not (out / "metrics.json").exists()
+    assert cli.main(["eval", str(out), "--no-progress"]) == 0
+    assert "snapshot at step 12" in capsys.readouterr().out
+    snap = out / "snapshots" / "step_000012"
+    _check_metrics(json.loads((snap / "metrics.json").read_text()), steps=12)
+    assert (snap / "renders" / "test").is_dir()
+    assert not (out / "metrics.json").exists()  # the run still counts as unfinished
+    # a folder that has not started training: a clear error naming it
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "config.toml").write_text((out / "config.toml").read_text())
+    assert cli.main(["eval", str(tmp_path / "empty"), "--no-progress"]) == 2
+    assert "point_cloud.ply: missing and no checkpoint.npz" in capsys.readouterr().err
+
+
 def test_run_command_skips_finished_runs(data_dir, tmp_path):
     values = {k: v for k, v in CONFIG.to_dict().items() if k != "data"}
     exp = tmp_path / "exp.toml"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 HELP = "evaluate a training run: PSNR / L1 / SSIM per view and split, render time, depth and normal maps"
 
@@ -27,7 +28,8 @@ def main(args) -> int:
             continue
         t = m["test"] if m["test"].get("num_views") else m["train"]
         which = "test" if m["test"].get("num_views") else "train"
-        print(f"{run}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}, "
+        at = f" (snapshot at step {m['steps']})" if not Path(run, "point_cloud.ply").is_file() else ""
+        print(f"{run}{at}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}, "
               f"{m['num_gaussians']} surfels, {m['render_seconds_per_view']:.3f} s/view")
     if args.report:
         from ghsplat_jax.eval.report import collect_runs, write_table1

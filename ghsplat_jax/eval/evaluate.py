@@ -73,6 +73,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     from ghsplat_jax.train.trainer import raster_config
 
     out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     save_renders = config.save_test_renders if save_renders is None else save_renders
     progress = config.progress if progress is None else progress
     rcfg = raster_config(config, None)  # eager renders: exact pair counts, nothing dropped
@@ -121,12 +122,20 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def snapshot_dir(run_dir, step: int) -> Path:
+    """Where the evaluation of an unfinished run's checkpoint at `step` goes."""
+    return Path(run_dir) / "snapshots" / f"step_{int(step):06d}"
+
+
 def evaluate_run(run_dir, progress: bool = True) -> dict:
-    """Re-evaluate a finished (or checkpointed) run folder from its config and point_cloud.ply."""
+    """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
+    checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its
+    checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent."""
     from ghsplat_jax.scene.ply import load_ply
     from ghsplat_jax.train import checkpoint as ckpt
+    from ghsplat_jax.train import optim
     from ghsplat_jax.train.config import load_config
-    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_training_data
+    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint, load_training_data
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / CONFIG_NAME
@@ -134,16 +143,21 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         raise FileNotFoundError(f"{run_dir}: not a training run (no {CONFIG_NAME})")
     config = load_config(cfg_path)
     ply = run_dir / PLY_NAME
-    if not ply.is_file():
-        raise FileNotFoundError(f"{ply}: missing; the run has not finished (resume it with ghsplat train --resume)")
-    surfels = load_ply(ply)
-    seconds = steps = None
-    meta_path = run_dir / ckpt.CHECKPOINT_NAME
-    if meta_path.is_file():
-        meta = ckpt.read_meta(meta_path)
-        seconds, steps = meta.get("train_seconds"), meta.get("step")
-    elif (run_dir / METRICS_NAME).is_file():
+    checkpoint = run_dir / ckpt.CHECKPOINT_NAME
+    meta = ckpt.read_meta(checkpoint) if checkpoint.is_file() else {}
+    seconds, steps = meta.get("train_seconds"), meta.get("step")
+    out_dir = run_dir
+    if ply.is_file():
+        surfels = load_ply(ply)
+    elif meta:
+        state, _ = load_run_checkpoint(checkpoint, optim.make_optimizers(config))
+        surfels = state.active_surfels()
+        out_dir = snapshot_dir(run_dir, steps)
+        log.info("%s: no %s yet; evaluating the checkpoint at step %d into %s", run_dir, PLY_NAME, steps, out_dir)
+    else:
+        raise FileNotFoundError(f"{ply}: missing and no {ckpt.CHECKPOINT_NAME} to evaluate; the run has not started")
+    if not meta and (run_dir / METRICS_NAME).is_file():
         old = json.loads((run_dir / METRICS_NAME).read_text())
         seconds, steps = old.get("train_seconds"), old.get("steps")
     dataset = load_training_data(config)
-    return evaluate(surfels, dataset, config, run_dir, seconds, steps, progress=progress)
+    return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress)

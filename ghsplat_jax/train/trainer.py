@@ -186,10 +186,7 @@ class _Session:
         return pair_bucket(2 * int(out.stats.num_pairs))
 
     def _restore(self, path: Path):
-        meta = ckpt.read_meta(path)
-        template = new_state(empty_params(meta["capacity"], meta["sh_degree"]), np.zeros(meta["capacity"], bool),
-                             self.optimizers)
-        self.state, meta = ckpt.load_checkpoint(path, template)
+        self.state, meta = load_run_checkpoint(path, self.optimizers)
         self.pair_capacity = int(meta["pair_capacity"])
         self.rollbacks = int(meta.get("rollbacks", 0))
         self.prior_seconds = float(meta.get("train_seconds", 0.0))
@@ -280,6 +277,14 @@ class _Session:
             new_cap *= 2
         log.info("surfel pool %d -> %d slots", cap, new_cap)
         self.state = grow(self.state, new_cap)
+
+
+def load_run_checkpoint(path: Path, optimizers: dict) -> tuple[TrainState, dict]:
+    """The training state and metadata of a run's checkpoint (the pool size from the file)."""
+    meta = ckpt.read_meta(path)
+    template = new_state(empty_params(meta["capacity"], meta["sh_degree"]), np.zeros(meta["capacity"], bool),
+                         optimizers)
+    return ckpt.load_checkpoint(path, template)
 
 
 def _truncate_stats(path: Path, last_step: int) -> None:
