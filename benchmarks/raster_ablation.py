@@ -1,0 +1,161 @@
+"""Rasterizer ablation on a trained scene: tile size x chunk size x backward, forward and
+forward+backward time of real surfels seen from the dataset's test cameras.
+
+    python benchmarks/raster_ablation.py --run runs/bench/fern_30000/default [--views 3]
+
+The run folder gives the surfels (point_cloud.ply, or the checkpoint of an unfinished run) and
+its dataset. Every variant renders the same images (the rasterizer is exact for any tiling),
+so the table is about speed; the largest difference from the default's render is recorded
+to show it. Times are medians after a warm-up, wall and process CPU time; the CPU time stays
+comparable when other jobs share the machine. Writes benchmarks/results/raster_ablation.json
+and .png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import ghsplat_jax as gs
+from ghsplat_jax.raster import rasterize
+from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
+from ghsplat_jax.train.trainer import raster_config
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).parent / "results"
+
+
+def load_run(run_dir: Path):
+    """(surfels, dataset, step) of a finished or checkpointed training run."""
+    from ghsplat_jax.train import checkpoint as ckpt
+    from ghsplat_jax.train import optim
+    from ghsplat_jax.train.config import load_config
+    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint, load_training_data
+
+    config = load_config(run_dir / CONFIG_NAME)
+    if (run_dir / PLY_NAME).is_file():
+        surfels, step = gs.load_ply(run_dir / PLY_NAME), config.steps
+    else:
+        state, meta = load_run_checkpoint(run_dir / ckpt.CHECKPOINT_NAME, optim.make_optimizers(config))
+        surfels, step = state.active_surfels(), int(meta["step"])
+    return jax.tree_util.tree_map(jnp.asarray, surfels), load_training_data(config), config, step
+
+
+def timed(fn, *args, repeats: int):
+    jax.block_until_ready(fn(*args))  # compile and warm up
+    wall, cpu = [], []
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(*args))
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return float(np.median(wall)), float(np.median(cpu))
+
+
+def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
+    cam = view.camera
+    pairs, fullest = (int(x) for x in count_pairs(surfels, cam, _binning_cfg(cfg)))
+    capacity = capacity_bucket(pairs)
+    slots = max(32, 1 << max(fullest - 1, 0).bit_length())
+    image = jnp.asarray(view.image)
+    render = lambda s: rasterize(s, cam, cfg, capacity, tile_slots=slots)
+    forward = jax.jit(lambda s: render(s).rgb)
+    grad = jax.jit(jax.grad(lambda s: jnp.mean(jnp.abs(render(s).rgb - image))))
+    fwd_wall, fwd_cpu = timed(forward, surfels, repeats=repeats)
+    both_wall, both_cpu = timed(grad, surfels, repeats=repeats)
+    return dict(pairs=pairs, forward_s=fwd_wall, forward_cpu_s=fwd_cpu, forward_backward_s=both_wall,
+                forward_backward_cpu_s=both_cpu, pixel_evals=pairs * cfg.tile_size**2), np.asarray(forward(surfels))
+
+
+def chart(rows: list[dict], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    labels = [f"t{r['tile_size']} c{r['chunk_size']} {r['backward'][:6]}" for r in rows]
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r["forward_cpu_s"] for r in rows], 0.4, label="forward")
+    ax.bar(x + 0.2, [r["forward_backward_cpu_s"] for r in rows], 0.4, label="forward + backward")
+    ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax.set_ylabel("CPU seconds per view (median over views)")
+    ax.set_title(title, fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", default=str(ROOT / "runs" / "bench" / "fern_30000" / "default"), help="training run")
+    ap.add_argument("--views", type=int, default=3, help="test views to time (evenly spaced)")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--tiles", default="8,16,32")
+    ap.add_argument("--chunks", default="16,32,64")
+    ap.add_argument("--results", default=str(RESULTS))
+    args = ap.parse_args(argv)
+
+    run = Path(args.run)
+    surfels, dataset, config, step = load_run(run)
+    views = list(dataset.test) or list(dataset.train)
+    views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, args.views).round().astype(int))]
+    # The training run's own settings first: it is the reference image and the baseline time.
+    base = dataclasses.replace(raster_config(config, None), on_overflow="raise")
+    grid = [dataclasses.replace(base, tile_size=t, chunk_size=c)
+            for t, c in itertools.product((int(v) for v in args.tiles.split(",")),
+                                          (int(v) for v in args.chunks.split(",")))]
+    grid = [base] + [g for g in grid if g != base] + [dataclasses.replace(base, backward="autodiff")]
+    reference = None
+    rows = []
+    for cfg in grid:
+        per_view, images = [], []
+        for v in views:
+            r, rgb = bench_view(surfels, v, cfg, args.repeats)
+            per_view.append(r)
+            images.append(rgb)
+        reference = images if reference is None else reference
+        row = dict(tile_size=cfg.tile_size, chunk_size=cfg.chunk_size, backward=cfg.backward,
+                   batch_chunks=cfg.batch_chunks, load_average=os.getloadavg()[0],
+                   **{k: float(np.median([p[k] for p in per_view])) for k in per_view[0]})
+        row["max_abs_diff_vs_default"] = float(max(np.max(np.abs(a - b)) for a, b in zip(images, reference)))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    fastest = min(rows, key=lambda r: r["forward_backward_cpu_s"])
+    default = rows[0]
+    w, h = views[0].camera.width, views[0].camera.height
+    result = {
+        "run": str(run), "data": config.data, "step": step, "num_surfels": int(surfels.num),
+        "image_size": [int(w), int(h)], "views": [v.name for v in views], "rows": rows,
+        "default": {k: default[k] for k in ("tile_size", "chunk_size", "backward")},
+        "fastest_forward_backward": {k: fastest[k] for k in ("tile_size", "chunk_size", "backward")},
+        "default_over_fastest_cpu": default["forward_backward_cpu_s"] / fastest["forward_backward_cpu_s"],
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
+                    "device": str(jax.devices()[0])},
+        "measured_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    out = Path(args.results)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "raster_ablation.json").write_text(json.dumps(result, indent=2) + "\n")
+    chart(rows, f"{config.data} at step {step}: {surfels.num} surfels, {w}x{h}, {len(views)} test views",
+          out / "raster_ablation.png")
+    print(f"fastest fwd+bwd: {result['fastest_forward_backward']}; default is "
+          f"{result['default_over_fastest_cpu']:.2f}x its CPU time")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
