@@ -100,7 +100,8 @@ def main(argv=None) -> int:
         else:
             schedule = f"2DGS scaled by {args.steps}/30000"
         result = {
-            "scene": name, "dataset": data, "steps": args.steps, "schedule": schedule, "target_test_psnr": target, "overrides": overrides | extra,
+            "scene": name, "dataset": data, "steps": args.steps, "schedule": schedule, "target_test_psnr": target,
+            "overrides": overrides | extra,
             "default": summary(default), "meets_target": default["test"]["psnr"] >= target,
             "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
                         "jax": jax.__version__, "backend": jax.default_backend(),
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
         }
         deviations = []
         if args.until is not None and args.until < args.steps:
-            deviations.append(f"evaluated at step {args.until} of {args.steps}, so the PSNR target does not apply")
+            deviations.append(f"evaluated at step {args.until} of {args.steps} (the target is for the finished run)")
         if args.steps < 30_000:
             deviations.append(f"{args.steps} steps instead of 30000 (schedule scaled), so the PSNR target does not apply")
         for k, v in extra.items():
