@@ -32,6 +32,7 @@ import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
 from ghsplat_jax.train.trainer import raster_config
+from raster_speed import timed  # noqa: E402  (benchmarks/ is the script's folder)
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
@@ -53,17 +54,6 @@ def load_run(run_dir: Path):
     return jax.tree_util.tree_map(jnp.asarray, surfels), load_training_data(config), config, step
 
 
-def timed(fn, *args, repeats: int):
-    jax.block_until_ready(fn(*args))  # compile and warm up
-    wall, cpu = [], []
-    for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        jax.block_until_ready(fn(*args))
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    return float(np.median(wall)), float(np.median(cpu))
-
-
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
     cam = view.camera
     pairs, fullest = (int(x) for x in count_pairs(surfels, cam, _binning_cfg(cfg)))
@@ -73,8 +63,8 @@ def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
     render = lambda s: rasterize(s, cam, cfg, capacity, tile_slots=slots)
     forward = jax.jit(lambda s: render(s).rgb)
     grad = jax.jit(jax.grad(lambda s: jnp.mean(jnp.abs(render(s).rgb - image))))
-    fwd_wall, fwd_cpu = timed(forward, surfels, repeats=repeats)
-    both_wall, both_cpu = timed(grad, surfels, repeats=repeats)
+    _, fwd_wall, fwd_cpu = timed(forward, surfels, repeats=repeats)
+    _, both_wall, both_cpu = timed(grad, surfels, repeats=repeats)
     return dict(pairs=pairs, forward_s=fwd_wall, forward_cpu_s=fwd_cpu, forward_backward_s=both_wall,
                 forward_backward_cpu_s=both_cpu, pixel_evals=pairs * cfg.tile_size**2), np.asarray(forward(surfels))
 
