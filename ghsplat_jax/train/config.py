@@ -33,7 +33,11 @@ class TrainConfig:
     steps: int = 30_000                 # optimisation steps, one view per step (2DGS: 30k)
     sh_degree: int = 3                  # final spherical-harmonics degree
     sh_increase_every: int = 1000       # one more SH band every this many steps
-    scale_schedule: bool = False        # short runs: scale every step-based setting by steps / 30000
+    # Short runs: scale every step-based setting by steps / 30000. A smoke test, not the method:
+    # densification then starts before the images are fitted (step 17 of 1000) and, measured on
+    # fern at 504x378, the count grew 13x in 100 steps at 12 dB. For short accuracy numbers stop
+    # the real schedule early instead (ghsplat train --until N, then ghsplat eval).
+    scale_schedule: bool = False
 
     # --- Adam (optax), one learning rate per parameter group -----------------------------
     lr_means_init: float = 1.6e-4       # x scene extent at step 0
