@@ -144,6 +144,27 @@ def test_ctrl_c_saves_a_checkpoint(tmp_path, monkeypatch):
     assert json.loads(lines[-1])["step"] == 5
 
 
+def test_sigterm_saves_a_checkpoint_like_ctrl_c(tmp_path, monkeypatch):
+    import os
+    import signal
+
+    from ghsplat_jax.train import trainer
+
+    real_step = trainer._Session.step
+
+    def step(self, i):
+        if i == 4:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_step(self, i)
+
+    monkeypatch.setattr(trainer._Session, "step", step)
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        train(CONFIG, tmp_path / "term", dataset=dataset())
+    assert read_meta(tmp_path / "term" / CHECKPOINT_NAME)["step"] == 4
+    assert signal.getsignal(signal.SIGTERM) is previous  # the handler is only set while training
+
+
 def test_pair_overflow_discards_the_step_and_grows_the_buffer(tmp_path, caplog):
     before = step_mod.TRACE_COUNTS["train_step"]
     with caplog.at_level(logging.INFO, logger="ghsplat.train"):

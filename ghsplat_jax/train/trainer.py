@@ -7,10 +7,13 @@ growth, rollback of non-finite steps, stats, progress and checkpoints.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import math
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -303,10 +306,28 @@ def _truncate_stats(path: Path, last_step: int) -> None:
         fh.write("".join(x + "\n" for x in keep))
 
 
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """Treat SIGTERM (a job scheduler's or `kill`'s stop) like Ctrl-C while training, so it also
+    saves a checkpoint; background jobs started by a shell ignore SIGINT, so kill is their way."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, render_fn=None,
           until: int | None = None) -> TrainResult:
-    """Train (or resume) a run into `out_dir`; see the module docstring. Ctrl-C saves a
-    checkpoint and re-raises KeyboardInterrupt. `until`: stop after that step with a
+    """Train (or resume) a run into `out_dir`; see the module docstring. Ctrl-C (or SIGTERM)
+    saves a checkpoint and raises KeyboardInterrupt. `until`: stop after that step with a
     checkpoint (no point_cloud.ply), to be resumed later."""
     from tqdm.auto import tqdm
 
@@ -328,34 +349,35 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     last_t, last_step = time.perf_counter(), start
     step = start
     stop = config.steps if until is None else min(until, config.steps)
-    try:
-        while step < stop:
-            m = session.step(step)
-            step += 1
-            if "pruned" in m or "opacity_reset" in m:
-                num = int(jnp.sum(session.state.active))
-            now = time.perf_counter()
-            rate = (step - last_step) / max(now - last_t, 1e-9)
-            record = dict(step=step, num_surfels=num, capacity=session.state.capacity,
-                          pair_capacity=session.pair_capacity, elapsed_s=round(seconds(), 3), steps_per_s=rate)
-            record.update(m)
-            stats.write(json.dumps(_jsonable(record), allow_nan=False) + "\n")
-            bar.update(1)
-            if step % 10 == 0 or step == config.steps:
-                stats.flush()
-                bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
-                last_t, last_step = now, step
-            if config.checkpoint_every and step % config.checkpoint_every == 0:
-                session.save(seconds())
-    except KeyboardInterrupt:
-        stats.flush()
-        session.save(seconds())
-        log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
-                    out / ckpt.CHECKPOINT_NAME)
-        raise
-    finally:
-        stats.close()
-        bar.close()
+    with _terminate_as_interrupt():
+        try:
+            while step < stop:
+                m = session.step(step)
+                step += 1
+                if "pruned" in m or "opacity_reset" in m:
+                    num = int(jnp.sum(session.state.active))
+                now = time.perf_counter()
+                rate = (step - last_step) / max(now - last_t, 1e-9)
+                record = dict(step=step, num_surfels=num, capacity=session.state.capacity,
+                              pair_capacity=session.pair_capacity, elapsed_s=round(seconds(), 3), steps_per_s=rate)
+                record.update(m)
+                stats.write(json.dumps(_jsonable(record), allow_nan=False) + "\n")
+                bar.update(1)
+                if step % 10 == 0 or step == config.steps:
+                    stats.flush()
+                    bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
+                    last_t, last_step = now, step
+                if config.checkpoint_every and step % config.checkpoint_every == 0:
+                    session.save(seconds())
+        except KeyboardInterrupt:
+            stats.flush()
+            session.save(seconds())
+            log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
+                        out / ckpt.CHECKPOINT_NAME)
+            raise
+        finally:
+            stats.close()
+            bar.close()
     total = seconds()
     session.save(total)
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count)
