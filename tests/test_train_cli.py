@@ -73,7 +73,11 @@ def test_eval_of_a_stopped_run_writes_a_snapshot(data_dir, tmp_path, capsys):
     assert cli.main(["eval", str(out), "--no-progress"]) == 0
     assert "snapshot at step 12" in capsys.readouterr().out
     snap = out / "snapshots" / "step_000012"
-    _check_metrics(json.loads((snap / "metrics.json").read_text()), steps=12)
+    m = json.loads((snap / "metrics.json").read_text())
+    _check_metrics(m, steps=12)
+    from ghsplat_jax.train.checkpoint import read_meta
+
+    assert m["peak_rss_mb"] >= read_meta(out / "checkpoint.npz")["peak_rss_mb"] > 0  # training's peak counts
     assert (snap / "renders" / "test").is_dir()
     assert not (out / "metrics.json").exists()  # the run still counts as unfinished
     # a folder that has not started training: a clear error naming it

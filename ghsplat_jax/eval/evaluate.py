@@ -63,9 +63,11 @@ def save_view_maps(folder: Path, name: str, out) -> None:
 
 
 def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = None, steps: int | None = None,
-             save_renders: bool | None = None, progress: bool | None = None) -> dict:
+             save_renders: bool | None = None, progress: bool | None = None,
+             train_peak_rss_mb: float | None = None) -> dict:
     """Render every test view and (up to config.eval_max_train_views) training view; write
-    OUT/metrics.json and OUT/per_view.json (and renders under OUT/renders/test/); return metrics."""
+    OUT/metrics.json and OUT/per_view.json (and renders under OUT/renders/test/); return metrics.
+    peak_rss_mb is this process's peak, or the training process's when that was larger."""
     import jax
     from tqdm.auto import tqdm
 
@@ -107,7 +109,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
         "image_size": ([int(dataset.train[0].camera.width), int(dataset.train[0].camera.height)]
                        if dataset.train else None),
         "data": str(config.data),
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": max(peak_rss_mb(), train_peak_rss_mb or 0.0),
         "strategy": config.strategy,
     }
     write_json(out_dir / PER_VIEW_NAME, rows)
@@ -115,7 +117,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     return metrics
 
 
-def _peak_rss_mb() -> float:
+def peak_rss_mb() -> float:
     """Peak resident memory of this process so far (training and evaluation), in MiB."""
     import resource
 
@@ -160,4 +162,5 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         old = json.loads((run_dir / METRICS_NAME).read_text())
         seconds, steps = old.get("train_seconds"), old.get("steps")
     dataset = load_training_data(config)
-    return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress)
+    return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
+                    train_peak_rss_mb=meta.get("peak_rss_mb"))

@@ -151,6 +151,7 @@ class _Session:
         self.render_fn = render_fn
         self.rollbacks = 0
         self.prior_seconds = 0.0
+        self.prior_peak_rss_mb = 0.0  # training processes before a resume
         path = out_dir / ckpt.CHECKPOINT_NAME
         if resume and path.exists():
             self._restore(path)
@@ -193,16 +194,19 @@ class _Session:
         self.pair_capacity = int(meta["pair_capacity"])
         self.rollbacks = int(meta.get("rollbacks", 0))
         self.prior_seconds = float(meta.get("train_seconds", 0.0))
+        self.prior_peak_rss_mb = float(meta.get("peak_rss_mb", 0.0))
         self.initial_count = int(meta["initial_count"])
         self.max_surfels = int(meta.get("max_surfels", 0))
         log.info("resumed from %s at step %d", path, int(self.state.step))
 
     def save(self, seconds: float):
+        from ghsplat_jax.eval.evaluate import peak_rss_mb
+
         s = self.state
         extra = dict(step=int(s.step), capacity=s.capacity, sh_degree=s.params.sh_degree,
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
                      initial_count=self.initial_count, max_surfels=self.max_surfels,
-                     config=self.config.to_dict())
+                     peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb), config=self.config.to_dict())
         ckpt.save_checkpoint(self.out / ckpt.CHECKPOINT_NAME, s, extra)
 
     # -- one iteration ------------------------------------------------------------------
