@@ -203,6 +203,23 @@ def test_opacity_reset_and_budget_schedule():
     assert densify.budget_target(cfg, 5000, 100, 1100) == 1100
 
 
+def test_random_init_box_is_where_the_cameras_look():
+    import ghsplat_jax as gs
+    from ghsplat_jax.train.state import random_init_box
+
+    target = np.array([0.3, -0.2, 0.5])
+    K = gs.intrinsics(64, 48, 60)
+    ring = [gs.Camera(K, gs.look_at(target + 4.0 * np.array([np.cos(a), np.sin(a), 0.5]), target), 64, 48)
+            for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]
+    center, half = random_init_box(ring, np.zeros(3), 9.0)
+    assert np.allclose(center, target, atol=1e-5)
+    assert half == pytest.approx(4.0 * np.sqrt(1.25) * np.tan(np.radians(30)), rel=1e-4)  # 60 deg wide view
+    # forward-facing: no meeting point, the fallback cube
+    row = [gs.Camera(K, gs.look_at([x, -4.0, 0.0], [x, 0.0, 0.0]), 64, 48) for x in np.linspace(-1, 1, 5)]
+    center, half = random_init_box(row, np.ones(3), 9.0)
+    assert np.allclose(center, 1.0) and half == 9.0
+
+
 def test_grow_pool_and_knn_init():
     st = _state()
     g = grow(st, 2 * CAP)

@@ -68,8 +68,37 @@ def random_quats(rng: np.random.Generator, n: int) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def initial_surfels(points, colors, scene_center, scene_extent: float, config, rng) -> Surfels:
-    """Host Surfels from dataset points (or random points in the scene box when there are too few)."""
+def random_init_box(cameras, fallback_center, fallback_half: float) -> tuple[np.ndarray, float]:
+    """Centre and half-size of the cube that random initial points fill: where the cameras look.
+
+    The centre is the point closest (least squares) to every optical axis; the half-size is what
+    the widest half field of view spans at the median camera distance to it (NeRF-synthetic
+    lego: about the 1.3 of the 3DGS box). Cameras that look one way (a forward-facing capture),
+    or whose axes meet behind them, have no such point: then the fallback cube."""
+    origins, axes, half_fov = [], [], []
+    for cam in cameras:
+        w2c = np.asarray(cam.world_to_cam, np.float64)
+        K = np.asarray(cam.K, np.float64)
+        origins.append(-w2c[:3, :3].T @ w2c[:3, 3])
+        axes.append(w2c[2, :3] / np.linalg.norm(w2c[2, :3]))  # the camera's +z in the world
+        half_fov.append(np.arctan(max(cam.width / (2 * K[0, 0]), cam.height / (2 * K[1, 1]))))
+    fallback = np.asarray(fallback_center, np.float64), float(fallback_half)
+    if len(origins) < 2:
+        return fallback
+    o, d = np.array(origins), np.array(axes)
+    across = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projections across each axis
+    A, b = across.sum(0), np.einsum("nij,nj->i", across, o)
+    if np.linalg.eigvalsh(A / len(o))[0] < 0.05:  # axes within ~13 degrees of one direction
+        return fallback
+    center = np.linalg.solve(A, b)
+    if np.median(np.einsum("ni,ni->n", center - o, d)) <= 0:
+        return fallback
+    return center, float(np.median(np.linalg.norm(o - center, axis=1)) * np.tan(max(half_fov)))
+
+
+def initial_surfels(points, colors, box_center, box_half: float, config, rng) -> Surfels:
+    """Host Surfels from dataset points, or random points in the cube box_center +- box_half
+    when there are too few (see `random_init_box`)."""
     from ghsplat_jax.core.sh import rgb_to_dc
 
     points = np.zeros((0, 3), np.float32) if points is None else np.asarray(points, np.float32).reshape(-1, 3)
@@ -78,8 +107,7 @@ def initial_surfels(points, colors, scene_center, scene_extent: float, config, r
     colors = None if colors is None else np.asarray(colors, np.float32).reshape(-1, 3)[finite]
     if len(points) < config.init_min_points:
         n = config.init_random_points
-        half = 0.5 * scene_extent
-        points = (np.asarray(scene_center, np.float32) + rng.uniform(-half, half, size=(n, 3))).astype(np.float32)
+        points = (np.asarray(box_center) + rng.uniform(-box_half, box_half, size=(n, 3))).astype(np.float32)
         colors = rng.uniform(0, 1, size=(n, 3)).astype(np.float32)
     if config.init_max_points and len(points) > config.init_max_points:
         keep = rng.choice(len(points), config.init_max_points, replace=False)

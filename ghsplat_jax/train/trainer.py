@@ -24,7 +24,8 @@ import numpy as np
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import densify, optim
 from ghsplat_jax.train.config import TrainConfig, save_config
-from ghsplat_jax.train.state import TrainState, empty_params, grow, initial_surfels, new_state, pad_params
+from ghsplat_jax.train.state import (TrainState, empty_params, grow, initial_surfels, new_state, pad_params,
+                                     random_init_box)
 from ghsplat_jax.train.step import make_train_step
 
 log = logging.getLogger("ghsplat.train")
@@ -164,7 +165,8 @@ class _Session:
     def _fresh(self):
         c = self.config
         rng = np.random.default_rng(c.seed)
-        init = initial_surfels(self.ds.points, self.ds.point_colors, self.ds.scene_center, self.extent, c, rng)
+        box = random_init_box([v.camera for v in self.ds.train], self.ds.scene_center, 0.5 * self.extent)
+        init = initial_surfels(self.ds.points, self.ds.point_colors, *box, c, rng)
         if c.strategy == "budget":
             self.max_surfels = c.max_surfels or 5 * init.num
             if init.num > self.max_surfels:
