@@ -30,29 +30,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import ghsplat_jax as gs
+from ghsplat_jax.eval.evaluate import load_run
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
-from ghsplat_jax.train.trainer import raster_config
+from ghsplat_jax.train.trainer import load_training_data, raster_config
 from raster_speed import timed  # noqa: E402  (benchmarks/ is the script's folder)
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
-
-
-def load_run(run_dir: Path):
-    """(surfels, dataset, step) of a finished or checkpointed training run."""
-    from ghsplat_jax.train import checkpoint as ckpt
-    from ghsplat_jax.train import optim
-    from ghsplat_jax.train.config import load_config
-    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint, load_training_data
-
-    config = load_config(run_dir / CONFIG_NAME)
-    if (run_dir / PLY_NAME).is_file():
-        surfels, step = gs.load_ply(run_dir / PLY_NAME), config.steps
-    else:
-        state, meta = load_run_checkpoint(run_dir / ckpt.CHECKPOINT_NAME, optim.make_optimizers(config))
-        surfels, step = state.active_surfels(), int(meta["step"])
-    return jax.tree_util.tree_map(jnp.asarray, surfels), load_training_data(config), config, step
 
 
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
@@ -101,7 +86,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     run = Path(args.run)
-    surfels, dataset, config, step = load_run(run)
+    config, surfels, meta, _ = load_run(run)
+    surfels = jax.tree_util.tree_map(jnp.asarray, surfels)
+    step = int(meta.get("step", config.steps))
+    dataset = load_training_data(config)
     views = list(dataset.test) or list(dataset.train)
     views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, args.views).round().astype(int))]
     # The training run's own settings first: it is the reference image and the baseline time.

@@ -17,6 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args) -> int:
     from ghsplat_jax.eval.evaluate import evaluate_run
+    from ghsplat_jax.train.trainer import PLY_NAME
 
     status = 0
     for run in args.run_dir:
@@ -28,7 +29,7 @@ def main(args) -> int:
             continue
         t = m["test"] if m["test"].get("num_views") else m["train"]
         which = "test" if m["test"].get("num_views") else "train"
-        at = f" (snapshot at step {m['steps']})" if not Path(run, "point_cloud.ply").is_file() else ""
+        at = f" (snapshot at step {m['steps']})" if not Path(run, PLY_NAME).is_file() else ""
         print(f"{run}{at}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}, "
               f"{m['num_gaussians']} surfels, {m['render_seconds_per_view']:.3f} s/view")
     if args.report:

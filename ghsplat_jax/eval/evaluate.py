@@ -129,15 +129,14 @@ def snapshot_dir(run_dir, step: int) -> Path:
     return Path(run_dir) / "snapshots" / f"step_{int(step):06d}"
 
 
-def evaluate_run(run_dir, progress: bool = True) -> dict:
-    """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
-    checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its
-    checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent."""
+def load_run(run_dir):
+    """(config, surfels, checkpoint metadata or {}, finished) of a training run folder: the
+    surfels of point_cloud.ply, or of the checkpoint while the run is unfinished."""
     from ghsplat_jax.scene.ply import load_ply
     from ghsplat_jax.train import checkpoint as ckpt
     from ghsplat_jax.train import optim
     from ghsplat_jax.train.config import load_config
-    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint, load_training_data
+    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / CONFIG_NAME
@@ -147,17 +146,27 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     ply = run_dir / PLY_NAME
     checkpoint = run_dir / ckpt.CHECKPOINT_NAME
     meta = ckpt.read_meta(checkpoint) if checkpoint.is_file() else {}
+    if ply.is_file():
+        return config, load_ply(ply), meta, True
+    if not meta:
+        raise FileNotFoundError(f"{ply}: missing and no {ckpt.CHECKPOINT_NAME} to evaluate; the run has not started")
+    state, _ = load_run_checkpoint(checkpoint, optim.make_optimizers(config))
+    return config, state.active_surfels(), meta, False
+
+
+def evaluate_run(run_dir, progress: bool = True) -> dict:
+    """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
+    checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its
+    checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent."""
+    from ghsplat_jax.train.trainer import load_training_data
+
+    run_dir = Path(run_dir)
+    config, surfels, meta, finished = load_run(run_dir)
     seconds, steps = meta.get("train_seconds"), meta.get("step")
     out_dir = run_dir
-    if ply.is_file():
-        surfels = load_ply(ply)
-    elif meta:
-        state, _ = load_run_checkpoint(checkpoint, optim.make_optimizers(config))
-        surfels = state.active_surfels()
+    if not finished:
         out_dir = snapshot_dir(run_dir, steps)
-        log.info("%s: no %s yet; evaluating the checkpoint at step %d into %s", run_dir, PLY_NAME, steps, out_dir)
-    else:
-        raise FileNotFoundError(f"{ply}: missing and no {ckpt.CHECKPOINT_NAME} to evaluate; the run has not started")
+        log.info("%s: unfinished; evaluating the checkpoint at step %d into %s", run_dir, steps, out_dir)
     if not meta and (run_dir / METRICS_NAME).is_file():
         old = json.loads((run_dir / METRICS_NAME).read_text())
         seconds, steps = old.get("train_seconds"), old.get("steps")

@@ -41,22 +41,16 @@ def collect_runs(run_dirs) -> list[dict]:
     return [r for r in rows if r is not None]
 
 
+_FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "ssim": "{:.3f}", "num_gaussians": "{:,}", "train_seconds": "{:.0f}",
+            "render_seconds_per_view": "{:.3f}"}
+
+
 def _fmt(key: str, v) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
-    if key == "l1":
-        return f"{v:.4f}"
-    if key in ("psnr",):
-        return f"{v:.2f}"
-    if key == "ssim":
-        return f"{v:.3f}"
     if key == "num_gaussians":
-        return f"{int(v):,}"
-    if key in ("train_seconds",):
-        return f"{v:.0f}"
-    if key == "render_seconds_per_view":
-        return f"{v:.3f}"
-    return str(v)
+        v = int(v)
+    return _FORMATS.get(key, "{}").format(v)
 
 
 def markdown_table(rows: list[dict], columns, headers=None) -> str:
