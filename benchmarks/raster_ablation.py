@@ -33,7 +33,7 @@ import ghsplat_jax as gs
 from ghsplat_jax.eval.evaluate import load_run
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
-from ghsplat_jax.train.trainer import load_training_data, raster_config
+from ghsplat_jax.train.trainer import load_training_data
 from raster_speed import timed  # noqa: E402  (benchmarks/ is the script's folder)
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
     views = list(dataset.test) or list(dataset.train)
     views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, args.views).round().astype(int))]
     # The training run's own settings first: it is the reference image and the baseline time.
-    base = dataclasses.replace(raster_config(config, None), on_overflow="raise")
+    base = dataclasses.replace(config.raster, pair_capacity=None, on_overflow="raise")
     grid = [dataclasses.replace(base, tile_size=t, chunk_size=c)
             for t, c in itertools.product((int(v) for v in args.tiles.split(",")),
                                           (int(v) for v in args.chunks.split(",")))]

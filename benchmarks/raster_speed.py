@@ -29,8 +29,9 @@ from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
 
 RESULTS = Path(__file__).parent / "results"
 VARIANTS = {
-    "tiled custom_vjp": gs.RasterConfig(),
-    "tiled autodiff": gs.RasterConfig(backward="autodiff"),
+    "tiled carried": gs.RasterConfig(),
+    "tiled logspace custom_vjp": gs.RasterConfig(compositor="logspace"),
+    "tiled logspace autodiff": gs.RasterConfig(compositor="logspace", backward="autodiff"),
     "naive dense": gs.RasterConfig(backend="dense"),
 }
 DENSE_MEMORY_LIMIT = 6e9  # bytes: the naive baseline is skipped above this predicted size

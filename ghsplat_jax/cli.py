@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+from pathlib import Path
 
 COMMANDS = {
     "demo": "ghsplat_jax.commands.demo",
@@ -48,10 +50,21 @@ def build_parser(commands: dict[str, object]) -> argparse.ArgumentParser:
     return parser
 
 
+def _enable_compilation_cache() -> None:
+    """Compiled XLA programs persist across commands (training steps take tens of seconds to
+    compile): $JAX_COMPILATION_CACHE_DIR when set, else ~/.cache/ghsplat-jax/xla."""
+    import jax
+
+    if not jax.config.jax_compilation_cache_dir:
+        default = Path.home() / ".cache" / "ghsplat-jax" / "xla"
+        jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(default))
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     commands = _available()
     args = build_parser(commands).parse_args(argv)
+    _enable_compilation_cache()
     try:
         return int(args._module.main(args) or 0)
     except KeyboardInterrupt:

@@ -49,10 +49,11 @@ def bad_scene():
     return s, cam
 
 
-@pytest.mark.parametrize("backward", ["custom_vjp", "autodiff"])
-def test_bad_geometry_never_produces_nan(backward):
+@pytest.mark.parametrize("compositor, backward", [("carried", "custom_vjp"), ("logspace", "custom_vjp"),
+                                                  ("logspace", "autodiff")])
+def test_bad_geometry_never_produces_nan(compositor, backward):
     s, cam = bad_scene()
-    cfg = gs.RasterConfig(backward=backward)
+    cfg = gs.RasterConfig(compositor=compositor, backward=backward)
     out = gs.render(s, cam, cfg)
     assert _finite(out)
     assert int(out.stats.num_invalid) == 3  # NaN, Inf and the zero quaternion

@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 import json
+import tomllib
 
 import numpy as np
 import pytest
+import tomli_w
 
 from ghsplat_jax import cli
-from ghsplat_jax.train.config import to_toml
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
 
 from test_train_loop import CONFIG
@@ -23,7 +24,7 @@ def data_dir(tmp_path_factory):
 
 def _config_file(path, **changes):
     values = {k: v for k, v in CONFIG.replace(**changes).to_dict().items() if k != "data"}
-    path.write_text(to_toml(values))
+    path.write_text(tomli_w.dumps(values))
     return path
 
 
@@ -47,7 +48,8 @@ def test_train_and_eval_commands(data_dir, tmp_path, capsys):
         assert (out / name).is_file(), name
     m = json.loads((out / "metrics.json").read_text())
     _check_metrics(m)
-    assert "background = [0.0, 0.0, 0.0]" in (out / "config.toml").read_text()
+    saved = tomllib.loads((out / "config.toml").read_text())
+    assert saved["raster"]["background"] == [0.0, 0.0, 0.0]  # --set beats --config, in the run's one raster section
     renders = sorted(p.name for p in (out / "renders" / "test").iterdir())
     assert len(renders) == 2 * 4 and any(r.endswith("_depth.exr") for r in renders)
     per_view = json.loads((out / "per_view.json").read_text())
@@ -90,11 +92,9 @@ def test_eval_of_a_stopped_run_writes_a_snapshot(data_dir, tmp_path, capsys):
 def test_run_command_skips_finished_runs(data_dir, tmp_path):
     values = {k: v for k, v in CONFIG.to_dict().items() if k != "data"}
     exp = tmp_path / "exp.toml"
-    exp.write_text(
-        'name = "tiny"\ndescription = "test"\n[train]\n' + to_toml(values)
-        + f'[[scenes]]\nname = "tiny"\ndata = "{data_dir}"\n'
-        + '[[variants]]\nname = "default"\n[[variants]]\nname = "budget"\n'
-        + 'train = { strategy = "budget", max_surfels = 2048 }\n')
+    exp.write_text(tomli_w.dumps({
+        "name": "tiny", "description": "test", "train": values, "scenes": [{"name": "tiny", "data": str(data_dir)}],
+        "variants": [{"name": "default"}, {"name": "budget", "train": {"strategy": "budget", "max_surfels": 2048}}]}))
     out = tmp_path / "runs"
     assert cli.main(["run", str(exp), "--output", str(out), "--steps", "12"]) == 0
     for v in ("default", "budget"):

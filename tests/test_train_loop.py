@@ -17,12 +17,13 @@ from ghsplat_jax.train.config import TrainConfig
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 from ghsplat_jax.train.trainer import PLY_NAME, STATS_NAME, TrainingDivergedError, train
 
-# Every test here uses this config (same step settings: the compiled step is shared).
+# Every test here uses this config (same step settings: the XLA binary is shared through the
+# persistent compilation cache).
 CONFIG = TrainConfig(steps=30, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
                      sh_increase_every=10, densify_from=4, densify_every=4, densify_until=25,
                      opacity_reset_every=1000, lambda_dist=1.0, dist_from=8, lambda_normal=0.05, normal_from=8,
-                     initial_capacity=2048, pair_capacity=16384, init_random_points=200, progress=False,
-                     checkpoint_every=10)
+                     initial_capacity=2048, init_random_points=200, progress=False,
+                     checkpoint_every=10).replace(pair_capacity=16384)
 
 
 def dataset():
@@ -34,7 +35,6 @@ def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     # A fresh compiled step, so the trace count below is this run's alone even when another
     # test in the session already compiled the same step settings.
-    step_mod._cached_step.cache_clear()
     traces0 = step_mod.TRACE_COUNTS["train_step"]
     dens0 = densify.TRACE_COUNTS["densify"]
     result = train(CONFIG, out, dataset=dataset())

@@ -92,7 +92,7 @@ def test_config_overrides_save_and_errors(tmp_path):
     p = tmp_path / "exp.toml"
     p.write_text('steps = 500\nstrategy = "budget"\nbackground = [1, 1, 1]\n')
     cfg = load_config(p)
-    assert cfg.steps == 500 and cfg.strategy == "budget" and cfg.background == (1.0, 1.0, 1.0)
+    assert cfg.steps == 500 and cfg.strategy == "budget" and cfg.raster.background == (1.0, 1.0, 1.0)
     save_config(cfg, tmp_path / "config.toml")
     assert load_config(tmp_path / "config.toml") == cfg
     p.write_text("stepz = 3\n")
@@ -255,7 +255,7 @@ def test_opacity_reset_recovery_window():
     # 2DGS: resets at 3000, 6000, ...; the round at 3000 runs before that reset, 3100 is 100 steps after.
     assert last_reset_before(c, 3000) is None and last_reset_before(c, 3100) == 3000
     assert last_reset_before(c, 20_000) == 12_000  # no resets after densify_until
-    white = TrainConfig(background=(1.0, 1.0, 1.0))
+    white = TrainConfig().replace(background=(1.0, 1.0, 1.0))
     assert last_reset_before(white, 600) == 500  # white backgrounds also reset at densify_from
     short = TrainConfig(steps=300, scale_schedule=True).resolved()
     assert 2 * short.opacity_reset_every >= short.densify_until  # at most one reset in a 300-step run

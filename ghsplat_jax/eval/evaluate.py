@@ -3,6 +3,8 @@ renders with depth and normal maps, and the run's metrics.json."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import logging
 import math
@@ -72,13 +74,11 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     from tqdm.auto import tqdm
 
     import ghsplat_jax as gs
-    from ghsplat_jax.train.trainer import raster_config
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_renders = config.save_test_renders if save_renders is None else save_renders
     progress = config.progress if progress is None else progress
-    rcfg = raster_config(config, None)  # eager renders: exact pair counts, nothing dropped
+    rcfg = dataclasses.replace(config.raster, pair_capacity=None)  # eager renders: exact pair counts, nothing dropped
     surfels = jax.tree_util.tree_map(jax.numpy.asarray, surfels)
     splits = {"train": _even_subset(dataset.train, config.eval_max_train_views), "test": list(dataset.test)}
     rows, times = [], []

@@ -13,6 +13,9 @@ import jax.numpy as jnp
 
 from ghsplat_jax.raster.project import Projected
 
+TILE_MARGIN = 1e-2        # pixels added around a tile's rectangle of pixel centres (float32 slack)
+CONIC_TOLERANCE = 1e-5    # the normalised conic's value still counted as inside (likewise)
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -41,15 +44,16 @@ class Layout:
     chunk_count: jax.Array    # (W,) pairs in the chunk (0 for unused chunks)
     chunk_first: jax.Array    # (W,) bool: first chunk of its tile
     tile_count: jax.Array     # (T,) pairs per tile
-    num_pairs: jax.Array      # () pairs needed (may exceed C: overflow)
+    num_pairs: jax.Array      # () candidate pairs needed (may exceed C: overflow)
+    num_kept: jax.Array       # () pairs whose tile the surfel's alpha can reach 1/255 in
 
 
 def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid):
     """Inclusive tile rectangles (x0, y0, x1, y1) and pair counts per surfel."""
     ts = grid.tile_size
-    # Pixel centres j + 0.5 inside [box_min, box_max].
-    lo = jnp.ceil(p.box_min - 0.5)
-    hi = jnp.floor(p.box_max - 0.5)
+    # Pixel centres j + 0.5 inside the opacity-aware box [bin_min, bin_max].
+    lo = jnp.ceil(p.bin_min - 0.5)
+    hi = jnp.floor(p.bin_max - 0.5)
     size = jnp.array([width, height], jnp.float32)
     hits = p.visible & jnp.all((hi >= 0) & (lo <= size - 1) & (lo <= hi), axis=1)
     lo = jnp.clip(lo, 0, size - 1).astype(jnp.int32) // ts
@@ -85,7 +89,8 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     local = slot - starts[owner]
     row_len = (hi[surfel, 0] - lo[surfel, 0] + 1)
     tile = (lo[surfel, 1] + local // row_len) * grid.tiles_x + lo[surfel, 0] + local % row_len
-    tile = jnp.where(slot < num_pairs, tile, grid.num_tiles)
+    keep = (slot < num_pairs) & tile_touched(p, surfel, tile, grid)
+    tile = jnp.where(keep, tile, grid.num_tiles)
     tile, pair_surfel = jax.lax.sort((tile, surfel), num_keys=1, is_stable=True)
 
     tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
@@ -102,7 +107,35 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
         pair_surfel=pair_surfel,
         chunk_tile=jnp.where(used, chunk_tile, grid.num_tiles),
         chunk_start=chunk_start, chunk_count=chunk_count, chunk_first=used & (k == 0),
-        tile_count=tile_count, num_pairs=num_pairs)
+        tile_count=tile_count, num_pairs=num_pairs, num_kept=jnp.sum(keep))
+
+
+def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGrid) -> jax.Array:
+    """Whether a tile's pixel centres meet the region where the surfel's alpha can reach 1/255:
+    its ellipse (the minimum of the conic over the tile's rectangle is <= 0) or its filter disc.
+    Exact up to float32 rounding, which a small margin covers; unbounded conics keep every tile."""
+    ts = grid.tile_size
+    c = p.center[surfel]
+    x0 = (tile % grid.tiles_x * ts).astype(jnp.float32) + 0.5 - c[:, 0] - TILE_MARGIN
+    y0 = (tile // grid.tiles_x * ts).astype(jnp.float32) + 0.5 - c[:, 1] - TILE_MARGIN
+    x1, y1 = x0 + (ts - 1 + 2 * TILE_MARGIN), y0 + (ts - 1 + 2 * TILE_MARGIN)
+    # Filter disc: the rectangle's closest point to the centre.
+    nx, ny = jnp.clip(0.0, x0, x1), jnp.clip(0.0, y0, y1)
+    reach = p.reach[surfel]
+    in_disc = nx * nx + ny * ny <= reach * reach
+    qxx, qxy, qyy, qx, qy, q1 = (p.conic[surfel, i] for i in range(6))
+    q = lambda dx, dy: qxx * dx * dx + 2 * qxy * dx * dy + qyy * dy * dy + 2 * qx * dx + 2 * qy * dy + q1
+    safe = lambda v: jnp.where(v > 0, v, 1.0)
+    # The conic's minimum: inside the rectangle, or on one of its edges (1D minima of a quadratic).
+    det = qxx * qyy - qxy * qxy
+    cx, cy = (qxy * qy - qyy * qx) / safe(det), (qxy * qx - qxx * qy) / safe(det)
+    inside = (det > 0) & (cx >= x0) & (cx <= x1) & (cy >= y0) & (cy <= y1) & (q(cx, cy) <= CONIC_TOLERANCE)
+    on_edge = jnp.zeros_like(inside)
+    for y in (y0, y1):
+        on_edge |= q(jnp.clip(-(qxy * y + qx) / safe(qxx), x0, x1), y) <= CONIC_TOLERANCE
+    for x in (x0, x1):
+        on_edge |= q(x, jnp.clip(-(qxy * x + qy) / safe(qyy), y0, y1)) <= CONIC_TOLERANCE
+    return ~p.bounded[surfel] | in_disc | inside | on_edge
 
 
 def count_pairs(p: Projected, width: int, height: int, grid: TileGrid) -> tuple[jax.Array, jax.Array]:

@@ -46,6 +46,8 @@ class Static:
     far: float
     lowpass_filter: bool
     batch_chunks: int
+    median: bool = True       # the median depth is wanted (the carried compositor skips it otherwise)
+    distortion: bool = True   # the NDC depth sums of the distortion term are wanted (likewise)
 
 
 @jax.tree_util.register_dataclass

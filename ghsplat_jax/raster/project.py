@@ -31,8 +31,13 @@ class Projected:
     color: jax.Array      # (N,3)
     normal: jax.Array     # (N,3) world frame, facing the camera
     depth: jax.Array      # (N,) view depth of the centre (sort key, filter-branch depth)
-    box_min: jax.Array    # (N,2) screen box, pixels
+    box_min: jax.Array    # (N,2) screen box of the 3-sigma ellipse, pixels (visibility and radii)
     box_max: jax.Array    # (N,2)
+    bin_min: jax.Array    # (N,2) opacity-aware box: where alpha can reach 1/255 (binning)
+    bin_max: jax.Array    # (N,2)
+    conic: jax.Array      # (N,6) that region's ellipse q(d) <= 0 in pixel offsets d from `center`
+    reach: jax.Array      # (N,) radius of the low-pass filter's disc around `center` in that region
+    bounded: jax.Array    # (N,) bool: the ellipse lies in front of the camera (else no tile test)
     visible: jax.Array    # (N,) bool: valid, in front of near, box on screen
     invalid: jax.Array    # (N,) bool: non-finite parameters or zero quaternion
     culled_near: jax.Array  # (N,) bool
@@ -64,24 +69,30 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     depth = mu_c[:, 2]
 
     # Dual conic of u^2 + v^2 = CUTOFF^2: C* = M diag(c^2, c^2, -1) M^T.
-    f = jnp.array([CUTOFF**2, CUTOFF**2, -1.0])
-    dist = jnp.sum(f * M[:, 2] ** 2, axis=1)
-    bounded = dist < -1e-12 * jnp.maximum(depth**2, 1e-12)  # ellipse entirely in front of the camera
-    safe_dist = jnp.where(bounded, dist, -1.0)
-    conic_center = jnp.stack([jnp.sum(f * M[:, 0] * M[:, 2], 1), jnp.sum(f * M[:, 1] * M[:, 2], 1)], 1)
-    conic_center = conic_center / safe_dist[:, None]
-    diag = jnp.stack([jnp.sum(f * M[:, 0] ** 2, 1), jnp.sum(f * M[:, 1] ** 2, 1)], 1) / safe_dist[:, None]
-    half = jnp.sqrt(jnp.maximum(conic_center**2 - diag, 1e-4))
+    center, half, bounded = _ellipse_box(M, jnp.full((n,), CUTOFF**2), depth)
     reach = FILTER_REACH if lowpass_filter else 0.5
     half = jnp.maximum(half, reach)
 
     safe_depth = jnp.where(jnp.abs(depth) > 1e-12, depth, 1.0)
     projected_mean = M[:, :2, 2] / safe_depth[:, None]
-    center = jnp.where(bounded[:, None], conic_center, projected_mean)
+    center = jnp.where(bounded[:, None], center, projected_mean)
     # An ellipse that crosses the camera plane projects to an unbounded conic: whole screen.
     big = jnp.float32(1e9)
     box_min = jnp.where(bounded[:, None], center - half, -big)
     box_max = jnp.where(bounded[:, None], center + half, big)
+
+    # Where alpha = opacity exp(-rho / 2) can reach 1/255: rho <= 2 ln(255 opacity), capped at the
+    # 3-sigma ellipse (the reference's extent). rho = min(rho3, rho2), so that region is the
+    # ellipse u^2 + v^2 <= cut2 joined with the filter's disc 2 |x - c|^2 <= cut2.
+    cut2 = jnp.clip(2.0 * jnp.log(jnp.maximum(255.0 * opacity, 1e-30)), 0.0, CUTOFF**2)
+    tight_center, tight_half, tight_bounded = _ellipse_box(M, cut2, depth)
+    tight_half = jnp.maximum(tight_half, 0.5)
+    disc = jnp.sqrt(0.5 * cut2) if lowpass_filter else jnp.zeros_like(cut2)
+    faint = cut2 <= 0.0  # alpha < 1/255 everywhere: no pixel at all
+    bin_min = jnp.where(tight_bounded[:, None], jnp.minimum(tight_center - tight_half, center - disc[:, None]), -big)
+    bin_max = jnp.where(tight_bounded[:, None], jnp.maximum(tight_center + tight_half, center + disc[:, None]), big)
+    bin_min, bin_max = jnp.where(faint[:, None], big, bin_min), jnp.where(faint[:, None], -big, bin_max)
+    conic = _pixel_conic(M, cut2, center)
 
     if means2d_probe is not None:
         # Shifts the projected centre column only; the filter centre keeps its value, so the
@@ -105,8 +116,36 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     return Projected(
         M=jnp.where(visible[:, None, None], M, jnp.eye(3)), center=zero_if_hidden(center),
         opacity=zero_if_hidden(opacity), color=zero_if_hidden(color), normal=zero_if_hidden(normal),
-        depth=jnp.where(visible, depth, jnp.inf), box_min=box_min, box_max=box_max,
-        visible=visible, invalid=invalid, culled_near=culled_near)
+        depth=jnp.where(visible, depth, jnp.inf), box_min=box_min, box_max=box_max, bin_min=bin_min,
+        bin_max=bin_max, conic=conic, reach=disc, bounded=tight_bounded, visible=visible, invalid=invalid,
+        culled_near=culled_near)
+
+
+def _ellipse_box(M, cut2, depth):
+    """Centre, half-extent and boundedness of the projected ellipse u^2 + v^2 <= cut2 from its
+    dual conic C* = M diag(cut2, cut2, -1) M^T."""
+    f = jnp.stack([cut2, cut2, -jnp.ones_like(cut2)], axis=1)
+    dist = jnp.sum(f * M[:, 2] ** 2, axis=1)
+    bounded = dist < -1e-12 * jnp.maximum(depth**2, 1e-12)  # ellipse entirely in front of the camera
+    safe_dist = jnp.where(bounded, dist, -1.0)
+    center = jnp.stack([jnp.sum(f * M[:, 0] * M[:, 2], 1), jnp.sum(f * M[:, 1] * M[:, 2], 1)], 1)
+    center = center / safe_dist[:, None]
+    diag = jnp.stack([jnp.sum(f * M[:, 0] ** 2, 1), jnp.sum(f * M[:, 1] ** 2, 1)], 1) / safe_dist[:, None]
+    half = jnp.sqrt(jnp.maximum(center**2 - diag, 1e-4))
+    return center, half, bounded
+
+
+def _pixel_conic(M, cut2, origin):
+    """q(d) = p0^2 + p1^2 - cut2 p2^2 with p = adj(M) (origin + d, 1), as the coefficients
+    (dxx, dxy, dyy, dx, dy, 1) of a quadratic in the pixel offset d: q <= 0 inside the ellipse.
+    Normalised by its largest coefficient, so float32 comparisons stay meaningful."""
+    a, b, c0 = jnp.cross(M[:, 1], M[:, 2]), jnp.cross(M[:, 2], M[:, 0]), jnp.cross(M[:, 0], M[:, 1])
+    pc = a * origin[:, :1] + b * origin[:, 1:] + c0           # p at the origin
+    w = jnp.stack([jnp.ones_like(cut2), jnp.ones_like(cut2), -cut2], axis=1)
+    dot = lambda x, y: jnp.sum(w * x * y, axis=1)
+    q = jnp.stack([dot(a, a), dot(a, b), dot(b, b), dot(a, pc), dot(b, pc), dot(pc, pc)], axis=1)
+    scale = jnp.max(jnp.abs(q[:, :3]), axis=1, keepdims=True)
+    return jax.lax.stop_gradient(q / jnp.where(scale > 0, scale, 1.0))
 
 
 def evaluate_pixels(M, center, opacity, depth, xy, near: float, lowpass_filter: bool):

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core.camera import Camera
 from ghsplat_jax.core.surfels import Surfels
-from ghsplat_jax.raster import binning, composite, naive
+from ghsplat_jax.raster import binning, carried, composite, naive
 from ghsplat_jax.raster.config import RasterConfig, RasterOverflowError, RasterStats, RenderOutput
 from ghsplat_jax.raster.project import Projected, project
 
@@ -73,12 +73,14 @@ def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected,
         num_visible=jnp.sum(p.visible).astype(jnp.int32),
         num_invalid=jnp.sum(p.invalid).astype(jnp.int32),
         num_culled_near=jnp.sum(p.culled_near).astype(jnp.int32),
-        max_tile_pairs=jnp.max(layout.tile_count))
+        max_tile_pairs=jnp.max(layout.tile_count), num_kept=layout.num_kept.astype(jnp.int32))
+    # sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2; rounding can make it slightly negative.
+    distortion = jnp.maximum(a * d2 - d1 * d1, 0.0) if cfg.distortion else jnp.zeros_like(a)
+    median = _image(median, grid, cam.width, cam.height) if cfg.median else jnp.zeros_like(a)
     return RenderOutput(
         rgb=img[..., composite.RGB] + (1.0 - a[..., None]) * background, alpha=a,
-        depth=_safe_divide(img[..., composite.Z], a), median_depth=_image(median, grid, cam.width, cam.height),
-        # sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2; rounding can make it slightly negative.
-        normal=img[..., composite.NORMAL], distortion=jnp.maximum(a * d2 - d1 * d1, 0.0),
+        depth=_safe_divide(img[..., composite.Z], a), median_depth=median,
+        normal=img[..., composite.NORMAL], distortion=distortion,
         visible=p.visible, radii=radii, stats=stats)
 
 
@@ -89,7 +91,7 @@ def _empty(cam: Camera, cfg: RasterConfig) -> RenderOutput:
         rgb=jnp.broadcast_to(jnp.asarray(cfg.background, jnp.float32), (h, w, 3)),
         alpha=jnp.zeros((h, w)), depth=jnp.zeros((h, w)), median_depth=jnp.zeros((h, w)),
         normal=jnp.zeros((h, w, 3)), distortion=jnp.zeros((h, w)), visible=jnp.zeros((0,), bool),
-        radii=jnp.zeros((0,)), stats=RasterStats(zero, zero, zero, zero, zero, zero, zero))
+        radii=jnp.zeros((0,)), stats=RasterStats(zero, zero, zero, zero, zero, zero, zero, zero))
 
 
 def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
@@ -103,7 +105,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
     grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
     p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
     st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
-                          cfg.lowpass_filter, cfg.batch_chunks)
+                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
                                _num_chunks(capacity, grid, cfg))
     if cfg.backend == "dense":
@@ -116,8 +118,12 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
         pair = layout.chunk_start[:, None] + jnp.arange(cfg.chunk_size)[None]
         valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
         surfel = layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)]
-        totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
-                                             layout.chunk_first, cfg.backward)
+        if cfg.compositor == "carried":
+            totals, median = carried.composite_carried(st, carried.pair_table(p)[surfel], valid,
+                                                       layout.chunk_tile, layout.chunk_first)
+        else:
+            totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
+                                                 layout.chunk_first, cfg.backward)
     out = _outputs(totals, median, cfg, grid, cam, p, layout, capacity)
     if cfg.on_overflow == "raise" and isinstance(out.stats.num_pairs, jax.core.Tracer):
         jax.debug.callback(_raise_on_overflow, out.stats.num_pairs, capacity)

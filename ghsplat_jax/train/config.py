@@ -12,7 +12,13 @@ import json
 import os
 from pathlib import Path
 
+from ghsplat_jax.raster.config import RasterConfig
+
 STRATEGIES = ("default", "budget")
+# Flat names that earlier configs (and experiment files) used for fields of the raster section.
+RASTER_ALIASES = {"near": "near", "far": "far", "background": "background", "tile_size": "tile_size",
+                  "chunk_size": "chunk_size", "batch_chunks": "batch_chunks", "raster_backward": "backward",
+                  "pair_capacity": "pair_capacity"}
 
 
 class ConfigError(ValueError):
@@ -24,7 +30,6 @@ class TrainConfig:
     # --- data ---------------------------------------------------------------------------
     data: str = ""                      # dataset folder (absolute, or relative to the datasets root)
     downscale: float = 1.0              # image downscale factor applied by the dataset reader
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGBA composite and render background
     test_every: int = 8                 # every n-th image is a test view unless the dataset has a split
     max_views: int = 0                  # cap on the number of images read (0: all)
     seed: int = 0                       # view order, initialisation and split noise
@@ -92,18 +97,13 @@ class TrainConfig:
     initial_capacity: int = 0           # surfel slots at the start (0: 2x the initial count)
     capacity_headroom: float = 0.05     # grow the pool when fewer free slots than this fraction remain
 
-    # --- rasterizer -------------------------------------------------------------------------
-    near: float = 0.2                   # near plane (scene units)
-    far: float = 100.0                  # far plane of the NDC depth used by distortion
-    # Raster tiles of 8 px and chunks of 16: a training step on fern (504x378, 97k trained
-    # surfels) took 3.5 s against 5.6 s with 16-px tiles and chunks of 32, and no longer at the
-    # start (benchmarks/raster_ablation.py). 2DGS uses 16-px tiles; renders differ only where a
-    # surfel reaches past its 3-sigma box (max 0.015 in a channel there).
-    tile_size: int = 8                  # raster tile size (8, 16 or 32)
-    chunk_size: int = 16                # surfels blended per vectorised step within a tile
-    batch_chunks: int = 16              # chunks evaluated together
-    raster_backward: str = "custom_vjp" # "custom_vjp" or "autodiff"
-    pair_capacity: int = 0              # initial tile-surfel pair buffer (0: sized from a first render)
+    # --- rasterizer: the run's one set of rendering settings ----------------------------------
+    # Saved as the [raster] table of config.toml; training, eval, render, export previews, the
+    # simulator and the viewer all read it from there. `background` is also the colour RGBA
+    # images are composited on; `pair_capacity` (None: sized from a first render) the initial
+    # pair buffer. The flat names near, far, background, tile_size, chunk_size, batch_chunks,
+    # raster_backward and pair_capacity are accepted as aliases of these fields.
+    raster: RasterConfig = RasterConfig()
 
     # --- bookkeeping ----------------------------------------------------------------------
     checkpoint_every: int = 1000        # write a checkpoint every this many steps (and on Ctrl-C)
@@ -124,9 +124,8 @@ class TrainConfig:
             raise ConfigError(f"sh_degree must be 0-3, got {self.sh_degree}")
         if self.downscale <= 0:
             raise ConfigError(f"downscale must be positive, got {self.downscale}")
-        if len(self.background) != 3:
-            raise ConfigError(f"background must have 3 values, got {self.background}")
-        object.__setattr__(self, "background", tuple(float(c) for c in self.background))
+        if not isinstance(self.raster, RasterConfig):
+            raise ConfigError(f"raster must be a RasterConfig, got {type(self.raster).__name__}")
 
     def resolved(self) -> "TrainConfig":
         """With scale_schedule, the step-based settings scaled by steps / 30000 (the 2DGS
@@ -148,27 +147,62 @@ class TrainConfig:
         return apply_overrides(self, changes)
 
     def to_dict(self) -> dict:
+        """Plain values with the raster section as a nested table (None fields left out: TOML has no null)."""
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
 
 def _plain(v):
+    if isinstance(v, RasterConfig):
+        return {f.name: _plain(getattr(v, f.name)) for f in dataclasses.fields(v) if getattr(v, f.name) is not None}
     return list(v) if isinstance(v, tuple) else v
 
 
 def apply_overrides(config: TrainConfig, overrides: dict, source: str = "overrides") -> TrainConfig:
-    """A copy of `config` with fields replaced; unknown names or wrong types name `source`."""
+    """A copy of `config` with fields replaced; unknown names or wrong types name `source`.
+    Raster fields come as a `raster` table, as dotted `raster.NAME` keys or by their aliases."""
     fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
-    changes = {}
+    changes, raster = {}, {}
     for key, value in overrides.items():
+        if key == "raster":
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: option 'raster' must be a table of rasterizer settings, got {value!r}")
+            raster.update(value)
+            continue
+        if key.startswith("raster."):
+            raster[key.removeprefix("raster.")] = value
+            continue
+        if key in RASTER_ALIASES:
+            raster[RASTER_ALIASES[key]] = None if key == "pair_capacity" and value == 0 else value
+            continue
         if key not in fields:
             close = [n for n in fields if key.split("_")[0] in n][:5]
             hint = f" (did you mean one of {close}?)" if close else ""
             raise ConfigError(f"{source}: unknown training option {key!r}{hint}")
         default = getattr(TrainConfig, key, None)
         changes[key] = _coerce(value, default, f"{source}: option {key!r}")
+    if raster:
+        changes["raster"] = _raster_overrides(config.raster, raster, source)
     try:
         return dataclasses.replace(config, **changes)
     except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _raster_overrides(base: RasterConfig, values: dict, source: str) -> RasterConfig:
+    fields = {f.name for f in dataclasses.fields(RasterConfig)}
+    changes = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise ConfigError(f"{source}: unknown rasterizer option 'raster.{key}' (one of {sorted(fields)})")
+        default = getattr(RasterConfig, key)
+        where = f"{source}: option 'raster.{key}'"
+        if default is None:  # optional integers (pair_capacity, sh_degree)
+            changes[key] = None if value is None else _coerce(value, 0, where)
+        else:
+            changes[key] = _coerce(value, default, where)
+    try:
+        return dataclasses.replace(base, **changes)
+    except ValueError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 
 
@@ -214,30 +248,12 @@ def load_config(path: str | os.PathLike, base: TrainConfig | None = None) -> Tra
     return apply_overrides(base or TrainConfig(), table, str(path))
 
 
-def to_toml(values: dict) -> str:
-    """TOML text of a flat table of scalars, strings and lists of numbers."""
-    lines = []
-    for key, value in values.items():
-        lines.append(f"{key} = {_toml_value(value)}")
-    return "\n".join(lines) + "\n"
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)  # JSON string escapes are valid TOML basic strings
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 def save_config(config: TrainConfig, path: str | os.PathLike) -> Path:
     from ghsplat_jax.io_utils import atomic_write
 
+    import tomli_w
+
     with atomic_write(path, "w") as fh:
         fh.write("# resolved training config (ghsplat train); pass with --config to reproduce\n")
-        fh.write(to_toml(config.to_dict()))
+        fh.write(tomli_w.dumps(config.to_dict()))
     return Path(path)

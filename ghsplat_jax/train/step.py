@@ -100,15 +100,13 @@ def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: in
 TRACE_COUNTS: dict[str, int] = {"train_step": 0}  # incremented only while tracing: proves no recompiles
 
 
-def _step_key(config) -> tuple:
-    """The config fields a compiled step depends on (the optimiser and the loss)."""
-    return (config.lr_sh_dc, config.lr_sh_rest, config.lr_opacity, config.lr_scales, config.lr_quats,
-            config.adam_eps, LossWeights.from_config(config))
-
-
-@functools.lru_cache(maxsize=8)
-def _cached_step(key: tuple, render_fn):
-    config = _KEY_CONFIGS[key]
+def make_train_step(config, render_fn=None):
+    """(optimizers, jitted step(state, image, K, w2c, means_lr, raster_cfg, width, height)) built
+    from `config` itself: every setting the step reads is baked into this jit, so no other run
+    can reuse it by mistake. It compiles once per pool capacity, image size and raster_cfg
+    (static). Runs with identical settings still share the XLA binary through JAX's persistent
+    compilation cache, which keys on the program. The state is not donated: a step that
+    overflows its pair buffer or goes non-finite is redone or rolled back from it."""
     optimizers = optim.make_optimizers(config)
     weights = LossWeights.from_config(config)
     if render_fn is None:
@@ -120,18 +118,6 @@ def _cached_step(key: tuple, render_fn):
                           optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn)
 
     return optimizers, jax.jit(step, static_argnames=("raster_cfg", "width", "height"))
-
-
-_KEY_CONFIGS: dict = {}
-
-
-def make_train_step(config, render_fn=None):
-    """(optimizers, jitted step(state, image, K, w2c, means_lr, raster_cfg, width, height)). The
-    step compiles once per pool capacity, image size and pair capacity (raster_cfg is
-    static); runs with the same optimiser and loss settings share the compiled step."""
-    key = _step_key(config)
-    _KEY_CONFIGS.setdefault(key, config)
-    return _cached_step(key, render_fn)
 
 
 @functools.partial(jax.jit, static_argnames=("raster_cfg",))

@@ -72,7 +72,7 @@ def load_training_data(config: TrainConfig):
 
     if not config.data:
         raise ValueError("no dataset given: set --data (or `data` in the config)")
-    return load_dataset(resolve_data_path(config.data), downscale=config.downscale, background=config.background,
+    return load_dataset(resolve_data_path(config.data), downscale=config.downscale, background=config.raster.background,
                         split="auto", test_every=config.test_every, max_views=config.max_views or None)
 
 
@@ -99,12 +99,13 @@ def stack_views(views):
     return images, Ks, w2cs, w, h
 
 
-def raster_config(config: TrainConfig, pair_capacity: int | None):
-    from ghsplat_jax.raster.config import RasterConfig
-
-    return RasterConfig(near=config.near, far=config.far, background=config.background, tile_size=config.tile_size,
-                        chunk_size=config.chunk_size, batch_chunks=config.batch_chunks,
-                        backward=config.raster_backward, pair_capacity=pair_capacity, on_overflow="report")
+def step_raster_config(config: TrainConfig, pair_capacity: int):
+    """The run's rendering settings as the training step uses them: a static pair buffer whose
+    overflow is reported (and redone), and only the outputs the losses read."""
+    normal_loss = config.lambda_normal > 0
+    return dataclasses.replace(config.raster, pair_capacity=pair_capacity, on_overflow="report",
+                               median=config.raster.median and normal_loss and config.depth_ratio > 0,
+                               distortion=config.raster.distortion and config.lambda_dist > 0)
 
 
 def _jsonable(d: dict) -> dict:
@@ -118,7 +119,7 @@ def _jsonable(d: dict) -> dict:
 
 
 def _white(c: TrainConfig) -> bool:
-    return all(b == 1.0 for b in c.background)
+    return all(b == 1.0 for b in c.raster.background)
 
 
 def last_reset_before(c: TrainConfig, it: int) -> int | None:
@@ -178,7 +179,7 @@ class _Session:
         self.initial_count = init.num
         params, active = pad_params(init, cap)
         self.state = new_state(params, active, self.optimizers)
-        self.pair_capacity = c.pair_capacity or self._measure_pairs()
+        self.pair_capacity = c.raster.pair_capacity or self._measure_pairs()
 
     def _measure_pairs(self) -> int:
         """Size the pair buffer from an eager render of the first view (automatic capacity)."""
@@ -188,7 +189,8 @@ class _Session:
 
         cam = Camera(self.Ks[0], self.w2cs[0], self.width, self.height)
         s = self.state
-        out = render(render_params(s.params, s.active, cam.world_to_cam), cam, raster_config(self.config, None))
+        rcfg = dataclasses.replace(self.config.raster, pair_capacity=None)
+        out = render(render_params(s.params, s.active, cam.world_to_cam), cam, rcfg)
         return pair_bucket(2 * int(out.stats.num_pairs))
 
     def _restore(self, path: Path):
@@ -217,7 +219,7 @@ class _Session:
         c = self.config
         v = view_order(c.seed, step, self.images.shape[0])
         while True:
-            rcfg = raster_config(c, self.pair_capacity)
+            rcfg = step_raster_config(c, self.pair_capacity)
             lr = jnp.float32(self.means_lr(step))
             new, m = self.step_fn(self.state, self.images[v], self.Ks[v], self.w2cs[v], lr, rcfg, self.width,
                                   self.height)

@@ -1,0 +1,282 @@
+"""The carried compositor: each tile-surfel pair is evaluated once, transmittance is carried.
+
+Chunks (`chunk_size` pairs of one tile, front to back, tile-major) are walked in batches of
+`batch_chunks` by a loop over the used batches only. A batch's per-pixel planes are sized to
+stay in cache, which is what XLA:CPU needs: it materialises every multi-use intermediate of a
+fused expression, so throughput follows the cache level those planes live in. Inside a batch:
+  - every pair is evaluated once (alpha and hit depth on its tile's pixels);
+  - log(1 - alpha) is summed within each chunk by one small matmul with a triangular matrix;
+  - chunk sums are scanned across the batch, restarting at each tile's first chunk, and the
+    transmittance of the tile that straddles the batch boundary is carried into the next batch.
+The backward pass walks the same batches again, recomputes the forward blend with the same
+carry, carries g . (prefix of w f) the same way (d/dalpha_i sum_j w_j f_j = T_i f_i -
+S_i / (1 - alpha_i) with S_i = total - inclusive prefix), and pulls back through the per-pixel
+evaluation by hand: no autodiff inside the loop, and no per-chunk residuals but the median's.
+
+Per pair, a surfel is stored as the homography of its ray transform about the filter centre c:
+the pixel-plane cross product k x l is linear in the pixel, p(x) = a x + b y + c0 with
+a = M1 x M2, b = M2 x M0, c0 = M0 x M1 (M's rows), so p = pc + a dx + b dy with (dx, dy) = x - c
+and pc = p(c). Then (u, v) = (p0, p1) / p2 and, since M2 . a = M2 . b = 0, the hit depth
+u M20 + v M21 + M22 is det(M) / p2. Same contract as `project.evaluate_pixels`, fewer flops.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Static, ndc_depth,
+                                          segmented_exclusive_cumsum)
+from ghsplat_jax.raster.project import Projected
+
+# Columns of the per-pair table: homography about the centre, det(M), filter centre, opacity,
+# centre depth (the filter branch's depth), colour and normal.
+PC, A, B, DET, CX, CY, OPACITY, DEPTH = slice(0, 3), slice(3, 6), slice(6, 9), 9, 10, 11, 12, 13
+COLOR_NORMAL = slice(14, 20)
+NUM_FIELDS = 20
+LOG_T_MIN = math.log(T_MIN)
+LOG_HALF = math.log(0.5)
+EDGE_ON = 1e6  # |p0|, |p1| >= 1e6 |p2|: the hit would lie at infinity; the filter branch decides
+
+
+def pair_table(p: Projected) -> jax.Array:
+    """(N, NUM_FIELDS) per-surfel rows the compositor gathers per pair (differentiable)."""
+    M0, M1, M2 = p.M[:, 0], p.M[:, 1], p.M[:, 2]
+    a, b, c0 = jnp.cross(M1, M2), jnp.cross(M2, M0), jnp.cross(M0, M1)
+    cx, cy = p.center[:, 0], p.center[:, 1]
+    pc = a * cx[:, None] + b * cy[:, None] + c0
+    det = jnp.sum(M2 * c0, axis=1)
+    return jnp.concatenate([pc, a, b, det[:, None], p.center, p.opacity[:, None], p.depth[:, None],
+                            p.color, p.normal], axis=1)
+
+
+def _local_pixels(ts: int):
+    """(P,) x and y of a tile's pixel centres relative to its corner, row-major."""
+    local = jnp.arange(ts, dtype=jnp.float32) + 0.5
+    return jnp.tile(local, ts), jnp.repeat(local, ts)
+
+
+def _corner_offsets(f, tile, st: Static):
+    """(K, B) offsets of each chunk's tile corner from each pair's filter centre."""
+    x0 = ((tile % st.tiles_x) * st.tile_size).astype(jnp.float32)
+    y0 = ((tile // st.tiles_x) * st.tile_size).astype(jnp.float32)
+    return x0[None] - f[CX], y0[None] - f[CY]
+
+
+def _evaluate(f, dx, dy, valid, st: Static):
+    """alpha, hit depth and what the hand-written pullback needs, all (K, B, P)."""
+    g = lambda i: f[i][..., None]
+    p0 = g(0) + g(3) * dx + g(6) * dy
+    p1 = g(1) + g(4) * dx + g(7) * dy
+    p2 = g(2) + g(5) * dx + g(8) * dy
+    ok = (jnp.abs(p0) < EDGE_ON * jnp.abs(p2)) & (jnp.abs(p1) < EDGE_ON * jnp.abs(p2))
+    inv = 1.0 / jnp.where(ok, p2, 1.0)
+    u, v = p0 * inv, p1 * inv
+    rho3 = jnp.where(ok, u * u + v * v, jnp.inf)
+    rho2 = 2.0 * (dx * dx + dy * dy) if st.lowpass_filter else jnp.inf
+    hit = rho3 <= rho2
+    rho = jnp.where(hit, rho3, rho2)
+    z = jnp.where(hit, g(DET) * inv, g(DEPTH))
+    rho = jnp.where(jnp.isfinite(rho), rho, 1e10)  # no filter and no hit: alpha 0, finite pullback
+    e = jnp.exp(-0.5 * rho)
+    oe = g(OPACITY) * e
+    keep = (oe >= 1.0 / 255.0) & (z >= st.near) & valid[..., None]
+    alpha = jnp.where(keep, jnp.minimum(0.99, oe), 0.0)
+    z = jnp.where(alpha > 0, z, st.near)
+    return alpha, z, (u, v, inv, rho, hit, e, oe)
+
+
+def _cumsum_k(x: jax.Array) -> jax.Array:
+    """Inclusive cumulative sum over the leading (chunk) axis as one matmul."""
+    k = x.shape[0]
+    tri = jnp.tril(jnp.ones((k, k), x.dtype))
+    return (tri @ x.reshape(k, -1)).reshape(x.shape)
+
+
+def _lead(first: jax.Array) -> jax.Array:
+    """Chunks of the batch that continue the tile open at the batch's start."""
+    return jnp.cumsum(first.astype(jnp.int32)) == 0
+
+
+def _segmented_carry(chunk_totals, first, carry):
+    """Exclusive per-tile prefix of chunk totals (B, P), continuing `carry` for the open tile;
+    and the inclusive total at the batch's end (the next batch's carry)."""
+    before = segmented_exclusive_cumsum(chunk_totals, first) + jnp.where(_lead(first)[:, None], carry, 0.0)
+    return before, before[-1] + chunk_totals[-1]
+
+
+def _blend(alpha, log_t_carry, first):
+    """Transmittance before each pair, inclusion and weights (K, B, P); the next carry."""
+    log1m = jnp.log(1.0 - alpha)  # log1p costs twice as much on XLA:CPU; alpha <= 0.99 keeps this exact enough
+    within = _cumsum_k(log1m)
+    log_t0, carry = _segmented_carry(within[-1], first, log_t_carry)
+    log_t0 = jnp.maximum(log_t0, LOG_T_FLOOR)
+    log_after = log_t0[None] + within
+    log_before = log_after - log1m
+    t_before = jnp.exp(log_before)
+    included = (alpha > 0) & (log_after >= LOG_T_MIN)
+    weight = jnp.where(included, alpha * t_before, 0.0)
+    return t_before, included, weight, log_before, jnp.maximum(carry, LOG_T_FLOOR)
+
+
+def _last_median(included, log_before):
+    """One-hot (K, B, P) of the last pair with T > 0.5 in each chunk, and whether there is one."""
+    flag = included & (log_before > LOG_HALF)
+    k = jnp.arange(flag.shape[0])[:, None, None]
+    last = jnp.max(jnp.where(flag, k, -1), axis=0)
+    return flag & (k == last[None]), last >= 0
+
+
+def _slice(x, i, batch):
+    return jax.lax.dynamic_slice_in_dim(x, i * batch, batch)
+
+
+def _batch_inputs(table, valid, tile, first, i, st: Static):
+    """Batch i: fields (F, K, B), valid (K, B), tile (B,), first (B,), corner offsets (K, B)."""
+    rows = _slice(table, i, st.batch_chunks)                            # (B, K, F)
+    f = jnp.moveaxis(rows, 2, 0).swapaxes(1, 2)
+    t = _slice(tile, i, st.batch_chunks)
+    return f, _slice(valid, i, st.batch_chunks).T, t, _slice(first, i, st.batch_chunks), _corner_offsets(f, t, st)
+
+
+def _offsets(corner, st: Static):
+    """(dx, dy) of every pixel centre from each pair's filter centre, (K, B, P)."""
+    xl, yl = _local_pixels(st.tile_size)
+    return corner[0][..., None] + xl, corner[1][..., None] + yl
+
+
+def _num_batches(valid, st: Static):
+    used = jnp.sum(valid[:, 0].astype(jnp.int32))
+    return (used + st.batch_chunks - 1) // st.batch_chunks
+
+
+def _pixel_sums(weight, z, f, st: Static):
+    """(B, P, NUM_FEATURES) sums of w f over each chunk; skipped features stay zero."""
+    zero = jnp.zeros(weight.shape[1:])
+    if st.distortion:
+        m = ndc_depth(z, st)
+        wm = weight * m
+        m1, m2 = jnp.sum(wm, 0), jnp.sum(wm * m, 0)
+    else:
+        m1 = m2 = zero
+    const = jnp.einsum("kbp,kbc->bpc", weight, jnp.moveaxis(f[COLOR_NORMAL], 0, -1))
+    per_pixel = jnp.stack([jnp.sum(weight, 0), jnp.sum(weight * z, 0), m1, m2], axis=-1)   # (B, P, 4)
+    return jnp.concatenate([per_pixel[..., :1], const[..., :3], per_pixel[..., 1:2], const[..., 3:],
+                            per_pixel[..., 2:]], axis=-1)
+
+
+def _forward(st: Static, table, valid, tile, first):
+    num_chunks, pixels = tile.shape[0], st.tile_size ** 2
+    batch = st.batch_chunks
+
+    def body(i, state):
+        log_t, totals, z_last, selected = state
+        f, v, t, fst, corner = _batch_inputs(table, valid, tile, first, i, st)
+        alpha, z, _ = _evaluate(f, *_offsets(corner, st), v, st)
+        _, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
+        totals = totals.at[t].add(_pixel_sums(weight, z, f, st), mode="drop")
+        if st.median:
+            last, any_last = _last_median(included, log_before)
+            z_last = jax.lax.dynamic_update_slice_in_dim(z_last, jnp.sum(jnp.where(last, z, 0.0), 0), i * batch, 0)
+            chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
+            selected = selected.at[t].max(jnp.where(any_last, chunk_id[:, None], -1), mode="drop")
+        return log_t, totals, z_last, selected
+
+    median_rows = num_chunks if st.median else 1
+    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, pixels, NUM_FEATURES)), jnp.zeros((median_rows, pixels)),
+            jnp.full((st.num_tiles, pixels), -1, jnp.int32))
+    _, totals, z_last, selected = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+    median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
+    return (totals, median), (totals, selected)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def composite_carried(st: Static, table, valid, tile, first):
+    """Per-tile feature sums (T, P, F) and median depth (T, P) from the chunked pair table
+    (W, K, NUM_FIELDS); valid (W, K), tile (W,), first (W,) as `binning.Layout` lays them out."""
+    return _forward(st, table, valid, tile, first)[0]
+
+
+def _fwd(st, table, valid, tile, first):
+    outputs, (totals, selected) = _forward(st, table, valid, tile, first)
+    return outputs, (table, valid, tile, first, totals, selected)
+
+
+def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
+    """Hand-derived gradients of the per-pair fields (K, B, NUM_FIELDS - 6) from d alpha and d z."""
+    u, v, inv, rho, hit, e, oe = aux
+    live = d_alpha != 0
+    unclamped = live & (oe < 0.99)
+    g_rho = jnp.where(unclamped, -0.5 * oe * d_alpha, 0.0)
+    g_opacity = jnp.where(unclamped, e * d_alpha, 0.0)
+    # Hit branch: rho = (p0^2 + p1^2) / p2^2, z = det / p2.
+    g_hit_rho = jnp.where(hit, g_rho, 0.0)
+    g_hit_z = jnp.where(hit, d_z, 0.0)
+    g_p0, g_p1 = 2.0 * g_hit_rho * u * inv, 2.0 * g_hit_rho * v * inv
+    g_p2 = -(2.0 * g_hit_rho * rho + g_hit_z * f[DET][..., None] * inv) * inv
+    g_det = g_hit_z * inv
+    # Filter branch: rho = 2 |x - c|^2, z = centre depth.
+    g_filter = jnp.where(hit, 0.0, g_rho)
+    g_depth = jnp.where(hit, 0.0, d_z)
+    planes = jnp.stack([g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter])   # (7, K, B, P)
+    # Sums over pixels against [1, dx, dy]; dx = ox + x_local, so one matmul with the local basis.
+    xl, yl = _local_pixels(st.tile_size)
+    s = planes @ jnp.stack([jnp.ones_like(xl), xl, yl], axis=1)          # (7, K, B, 3)
+    ox, oy = corner
+    total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]
+    d_pc, d_a, d_b = total[:3], sx[:3], sy[:3]
+    a, b = f[A], f[B]
+    d_cx = -jnp.sum(a * d_pc, 0) - 4.0 * sx[6]
+    d_cy = -jnp.sum(b * d_pc, 0) - 4.0 * sy[6]
+    return jnp.concatenate([d_pc, d_a, d_b, total[3:4], d_cx[None], d_cy[None], total[4:6]], axis=0)
+
+
+def _bwd(st: Static, residuals, cotangents):
+    table, valid, tile, first, totals, selected = residuals
+    g_totals, g_median = cotangents
+    num_chunks, pixels = tile.shape[0], st.tile_size ** 2
+    batch = st.batch_chunks
+    pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
+    g_totals, g_median, selected = pad(g_totals, 0.0), pad(g_median, 0.0), pad(selected, -1)
+    g_dot_total = jnp.sum(g_totals * pad(totals, 0.0), axis=-1)          # (T + 1, P)
+
+    def body(i, state):
+        log_t, prefix, d_table = state
+        f, v, t, fst, corner = _batch_inputs(table, valid, tile, first, i, st)
+        alpha, z, aux = _evaluate(f, *_offsets(corner, st), v, st)
+        t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
+        g = g_totals[t]                                                   # (B, P, F)
+        g_const = jnp.concatenate([g[..., 1:4], g[..., 5:8]], axis=-1)    # (B, P, 6)
+        # h = g . f for every (pair, pixel): the output change per unit weight.
+        h = g[..., 0] + g[..., 4] * z + jnp.einsum("kbc,bpc->kbp", jnp.moveaxis(f[COLOR_NORMAL], 0, -1), g_const)
+        g_z = g[..., 4]
+        if st.distortion:
+            m = ndc_depth(z, st)
+            h = h + (g[..., 8] + g[..., 9] * m) * m
+            g_z = g_z + (g[..., 8] + 2.0 * g[..., 9] * m) * (st.far / (st.far - st.near) * st.near / (z * z))
+        wh = weight * h
+        within = _cumsum_k(wh)
+        before, prefix = _segmented_carry(within[-1], fst, prefix)
+        after = g_dot_total[t][None] - (before[None] + within)            # g . S_i
+        d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
+        d_z = weight * g_z
+        if st.median:
+            last, _ = _last_median(included, log_before)
+            chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
+            median_here = (selected[t] == chunk_id[:, None])[None]
+            d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
+        d_geometry = _pullback(f, corner, aux, d_alpha, d_z, st)        # (14, K, B)
+        d_const = jnp.einsum("kbp,bpc->kbc", weight, g_const)            # (K, B, 6)
+        d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)
+        d_table = jax.lax.dynamic_update_slice_in_dim(d_table, d_rows, i * batch, 0)
+        return log_t, prefix, d_table
+
+    init = (jnp.zeros(pixels), jnp.zeros(pixels), jnp.zeros_like(table))
+    _, _, d_table = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+    return d_table, None, None, None
+
+
+composite_carried.defvjp(_fwd, _bwd)
