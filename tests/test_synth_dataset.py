@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.core.quaternions import to_rotation_matrix
+from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.scene.tags import load_tags
 from ghsplat_jax.synth import capture, command, config, dataset, render, scene as synth_scene
 
@@ -69,7 +70,7 @@ def test_colmap_text_describes_the_generator_cameras(written):
 def test_points3d_lie_on_visible_surfaces_and_reproject(written):
     s, cams, out = written
     _, images, points = parse_colmap(out / "sparse" / "0")
-    depth = [dataset.read_image(out / "depth" / f"{i:05d}.exr") for i in range(VIEWS)]
+    depth = [read_pixels(out / "depth" / f"{i:05d}.exr") for i in range(VIEWS)]
     n_obs = 0
     for (iid, q, t, cid, name, xy_id), cam in zip(images, cams):
         K, w2c = np.asarray(cam.K, np.float64), np.asarray(cam.world_to_cam, np.float64)
@@ -105,10 +106,10 @@ def test_transforms_json_matches_colmap(written):
 def test_ground_truth_images_round_trip(written):
     s, cams, out = written
     views = render.render_view(s, cams[2])
-    np.testing.assert_array_equal(dataset.read_image(out / "depth" / "00002.exr"), views["depth"])
-    np.testing.assert_array_equal(dataset.read_image(out / "normals" / "00002.exr"), views["normal"])
-    np.testing.assert_array_equal(dataset.read_image(out / "masks" / "00002.png"), views["instance"])
-    rgb = dataset.read_image(out / "images" / "00002.png")
+    np.testing.assert_array_equal(read_pixels(out / "depth" / "00002.exr"), views["depth"])
+    np.testing.assert_array_equal(read_pixels(out / "normals" / "00002.exr"), views["normal"])
+    np.testing.assert_array_equal(read_pixels(out / "masks" / "00002.png"), views["instance"])
+    rgb = read_pixels(out / "images" / "00002.png")
     assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8
     np.testing.assert_allclose(rgb / 255.0, views["rgb"], atol=1 / 255 + 1e-6)
     inst = json.loads((out / "instances.json").read_text())
