@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 import pytest
+import tomli_w
 
 from ghsplat_jax import cli
-from ghsplat_jax.train.config import to_toml
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
 
 from test_train_loop import CONFIG
@@ -23,7 +23,7 @@ def data_dir(tmp_path_factory):
 
 def _config_file(path, **changes):
     values = {k: v for k, v in CONFIG.replace(**changes).to_dict().items() if k != "data"}
-    path.write_text(to_toml(values))
+    path.write_text(tomli_w.dumps(values))
     return path
 
 
@@ -91,7 +91,7 @@ def test_run_command_skips_finished_runs(data_dir, tmp_path):
     values = {k: v for k, v in CONFIG.to_dict().items() if k != "data"}
     exp = tmp_path / "exp.toml"
     exp.write_text(
-        'name = "tiny"\ndescription = "test"\n[train]\n' + to_toml(values)
+        'name = "tiny"\ndescription = "test"\n[train]\n' + tomli_w.dumps(values)
         + f'[[scenes]]\nname = "tiny"\ndata = "{data_dir}"\n'
         + '[[variants]]\nname = "default"\n[[variants]]\nname = "budget"\n'
         + 'train = { strategy = "budget", max_surfels = 2048 }\n')
