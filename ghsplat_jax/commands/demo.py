@@ -105,12 +105,13 @@ def _poses(model: Path) -> dict:
     """{image name: world_to_cam} of a COLMAP model folder (binary or text)."""
     import numpy as np
 
+    from ghsplat_jax.core.quaternions import to_rotation_matrix_np
     from ghsplat_jax.data import colmap
 
     poses = {}
     for image in colmap.read_images(colmap.model_file(model, "images")).values():
         w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = colmap.quat_to_matrix(image.qvec), image.tvec
+        w2c[:3, :3], w2c[:3, 3] = to_rotation_matrix_np(image.qvec), image.tvec
         poses[Path(image.name).name] = w2c
     return poses
 
