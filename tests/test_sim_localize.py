@@ -9,7 +9,7 @@ pytest.importorskip("cv2")
 
 from ghsplat_jax.scene import markers, surfaces
 from ghsplat_jax.scene.merge import merge
-from ghsplat_jax.scene.ply import save_ply
+from ghsplat_jax.data.ply import save_ply
 from ghsplat_jax.scene.tags import save_tags
 from ghsplat_jax.sim import localize, robot
 

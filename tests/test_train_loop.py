@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.train import densify, step as step_mod
-from ghsplat_jax.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, read_meta
+from ghsplat_jax.train.checkpoint import load_checkpoint, read_meta
 from ghsplat_jax.train.config import TrainConfig
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
-from ghsplat_jax.train.trainer import PLY_NAME, STATS_NAME, TrainingDivergedError, train
+from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, PLY_NAME, STATS_NAME
+from ghsplat_jax.train.trainer import TrainingDivergedError, train
 
 # Every test here uses this config (same step settings: the compiled step is shared).
 CONFIG = TrainConfig(steps=30, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
@@ -51,7 +52,7 @@ def test_loss_decreases_and_outputs_written(run):
     assert np.mean([s["l1"] for s in last]) < 0.8 * np.mean([s["l1"] for s in first])
     assert np.mean([s["psnr"] for s in last]) > np.mean([s["psnr"] for s in first]) + 3.0
     assert all(s["finite"] for s in stats)
-    from ghsplat_jax.scene.ply import load_ply
+    from ghsplat_jax.data.ply import load_ply
 
     s = load_ply(out / PLY_NAME)
     assert s.num == run["result"].num_surfels == stats[-1]["num_surfels"]

@@ -42,14 +42,14 @@ def synthetic_dataset(num_views: int = 8, width: int = 48, height: int = 32, num
                       background=(0.0, 0.0, 0.0), test_every: int = 4, num_points: int = 300):
     """A Dataset of rendered views; every `test_every`-th view is a test view; `points` are
     samples on the true surfels (a stand-in for SfM points) with their colours."""
-    import ghsplat_jax as gs
     from ghsplat_jax.data import Dataset, View
+    from ghsplat_jax.raster import RasterConfig, render
 
     scene = random_scene(num_surfels, seed)
-    cfg = gs.RasterConfig(background=tuple(background))
+    cfg = RasterConfig(background=tuple(background))
     views = []
     for i, cam in enumerate(ring_cameras(num_views, width, height, seed=seed)):
-        out = gs.render(scene, cam, cfg)
+        out = render(scene, cam, cfg)
         views.append(View(f"view_{i:03d}", cam, np.asarray(out.rgb, np.float32), None))
     test = [v for i, v in enumerate(views) if i % test_every == 0]
     train = [v for i, v in enumerate(views) if i % test_every != 0]
