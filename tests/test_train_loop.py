@@ -72,6 +72,34 @@ def test_no_recompilation_across_steps_and_densification(run):
     assert run["dens_traces"] <= len({s["capacity"] for s in stats})
 
 
+def test_budget_count_follows_the_cap_schedule(tmp_path):
+    """With --strategy budget every densification round grows the count by at most the
+    schedule's allowance (linear from the initial count to the cap), and by exactly that
+    when there are more candidates than room: the cap is followed, not just not exceeded."""
+    out = tmp_path / "budget"
+    cfg = CONFIG.replace(strategy="budget", max_surfels=400, densify_grad_threshold=1e-8)  # all seen are candidates
+    result = train(cfg, out, dataset=dataset())
+    meta = read_meta(out / CHECKPOINT_NAME)
+    initial, cap = meta["initial_count"], meta["max_surfels"]
+    assert cap == 400 and initial < cap
+    stats = [json.loads(line) for line in (out / STATS_NAME).read_text().splitlines()]
+    assert {s["capacity"] for s in stats} == {cap}  # the pool is allocated at the cap
+    prev, filled, targets = initial, 0, []
+    for s in stats:
+        if "candidates" in s:  # a densification round after iteration s["step"]
+            target = densify.budget_target(cfg, s["step"], initial, cap)
+            targets.append(target)
+            grown = prev + s["cloned"] + s["split"]
+            assert grown <= target, s
+            assert s["num_surfels"] == grown - s["pruned"], s
+            if s["skipped"]:  # more candidates than the allowance: filled up to the target
+                assert grown == target, s
+                filled += 1
+        prev = s["num_surfels"]
+    assert targets == sorted(targets) and targets[0] < targets[-1] < cap  # a ramp, not the cap at once
+    assert filled >= 3 and prev == result.num_surfels
+
+
 def test_resume_reproduces_state(run, tmp_path):
     out = tmp_path / "resumed"
     part = train(CONFIG, out, dataset=dataset(), until=13)
