@@ -68,7 +68,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     from tqdm.auto import tqdm
 
     from ghsplat_jax.raster.render import render
-    from ghsplat_jax.train import raster_config
+    from ghsplat_jax.train.trainer import raster_config  # a RasterConfig of the run's TrainConfig
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

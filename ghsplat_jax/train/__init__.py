@@ -6,7 +6,6 @@ the jitted step, the training loop and the run folder (run_dir.py).
 """
 
 from ghsplat_jax.train.config import ConfigError, TrainConfig, load_config
-from ghsplat_jax.train.trainer import TrainingDivergedError, TrainResult, raster_config, train
+from ghsplat_jax.train.trainer import TrainingDivergedError, TrainResult, train
 
-__all__ = ["ConfigError", "TrainConfig", "TrainResult", "TrainingDivergedError", "load_config", "raster_config",
-           "train"]
+__all__ = ["ConfigError", "TrainConfig", "TrainResult", "TrainingDivergedError", "load_config", "train"]
