@@ -30,10 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import ghsplat_jax as gs
-from ghsplat_jax.eval.evaluate import load_run
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
-from ghsplat_jax.train.trainer import load_training_data
+from ghsplat_jax.train.run_dir import load_run, load_training_data
 from raster_speed import timed  # noqa: E402  (benchmarks/ is the script's folder)
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -16,7 +16,7 @@ COMMANDS = {
     "demo": "ghsplat_jax.commands.demo",
     "render": "ghsplat_jax.commands.render",
     "sfm": "ghsplat_jax.sfm.command",
-    "train": "ghsplat_jax.train.command",
+    "train": "ghsplat_jax.commands.train",
     "eval": "ghsplat_jax.eval.command",
     "run": "ghsplat_jax.eval.run_command",
     "export": "ghsplat_jax.scene.export_command",

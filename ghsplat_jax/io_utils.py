@@ -1,35 +1,72 @@
-"""Small I/O helpers shared by every writer: atomic writes and JSON."""
+"""Small I/O helpers shared by every writer: atomic writes (files and folders) and JSON.
+
+One rule for every output: write under a temporary name beside the target, then rename,
+so a reader (or a crash) sees the old output or the new one, never half of one.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 
+def replace_path(new: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Move `new` (a file or a folder) to `target`, replacing whatever is there."""
+    new, target = Path(new), Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if not (target.is_dir() and not target.is_symlink()):
+        os.replace(new, target)
+        return
+    # os.replace cannot replace a non-empty folder: move the old one aside first.
+    old = target.with_name(f".{target.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    os.replace(target, old)
+    os.replace(new, target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "wb"):
-    """Write to a temp file beside `path`, then rename: readers never see half a file."""
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path with `path`'s name (so writers that pick a format from the
+    suffix, or name files after their folder, behave the same) in a private folder beside
+    it; on success it replaces `path` (a file or a folder), on an exception it is removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
-        with os.fdopen(fd, mode) as fh:
+        tmp = scratch / path.name
+        yield tmp
+        if not tmp.exists():
+            raise FileNotFoundError(f"{path}: the writer produced no output")
+        replace_path(tmp, path)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb"):
+    """Open a file for writing that appears at `path` complete (flushed and synced) or not at all."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode) as fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def write_json(path: str | os.PathLike, obj) -> Path:
     with atomic_write(path, "w") as fh:
         json.dump(obj, fh, indent=2, allow_nan=False)
         fh.write("\n")
+    return Path(path)
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Write a matplotlib Figure as PNG atomically (a `matplotlib.figure.Figure` needs no
+    pyplot and no backend switch: it renders with Agg for PNG)."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
     return Path(path)

@@ -303,6 +303,44 @@ def test_image_io_bit_depths_and_alpha(tmp_path, ext, dtype, tol):
     np.testing.assert_allclose(rgb, rgba[..., :3] * rgba[..., 3:], atol=2 * tol)  # premultiplied
 
 
+def test_integer_pixels_are_stored_as_given_and_floats_quantised(tmp_path):
+    import OpenImageIO as oiio
+
+    from ghsplat_jax.data.images import read_pixels
+
+    rng = np.random.default_rng(2)
+    mask = rng.integers(0, 60000, (6, 4), dtype=np.uint16)
+    write_image(tmp_path / "m.png", mask)
+    np.testing.assert_array_equal(read_pixels(tmp_path / "m.png"), mask)
+    rgb8 = rng.integers(0, 256, (6, 4, 3), dtype=np.uint8)
+    write_image(tmp_path / "c.png", rgb8)
+    np.testing.assert_array_equal(read_pixels(tmp_path / "c.png"), rgb8)
+    grey = rng.random((6, 4), dtype=np.float32)
+    write_image(tmp_path / "g.png", grey)  # floats in [0, 1] -> rounded 8-bit
+    np.testing.assert_array_equal(read_pixels(tmp_path / "g.png"), np.round(grey * 255).astype(np.uint8))
+    depth = rng.random((6, 4), dtype=np.float32) * 40.0
+    write_image(tmp_path / "d.exr", depth)
+    np.testing.assert_array_equal(read_pixels(tmp_path / "d.exr"), depth)
+    assert oiio.ImageBuf(str(tmp_path / "d.exr")).spec().channelnames == ("Z",)
+    with pytest.raises(ValueError, match="non-finite"):
+        write_image(tmp_path / "bad.exr", np.full((2, 2), np.nan, np.float32))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.png", "d.exr", "g.png", "m.png"]  # no temp files
+
+
+def test_area_resize_without_opencv_is_block_means(monkeypatch):
+    import sys
+
+    from ghsplat_jax.data.images import resize_area
+
+    image = np.random.default_rng(4).random((8, 12, 3), dtype=np.float32)
+    with_cv2 = resize_area(image, 6, 4)
+    monkeypatch.setitem(sys.modules, "cv2", None)  # import cv2 now raises ImportError
+    np.testing.assert_allclose(resize_area(image, 6, 4), image.reshape(4, 2, 6, 2, 3).mean(axis=(1, 3)), atol=1e-6)
+    np.testing.assert_allclose(resize_area(image, 6, 4), with_cv2, atol=1e-5)
+    with pytest.raises(DatasetError, match="needs OpenCV"):
+        resize_area(image, 5, 4)
+
+
 def test_rgba_is_composited_on_the_background(tmp_path):
     cams = _cameras(2)
     rgba = np.zeros((H, W, 4), np.float32)

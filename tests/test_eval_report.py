@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from ghsplat_jax.eval.charts import write_charts
+from ghsplat_jax.eval.charts import scatter_figure, scatter_series, write_charts
 from ghsplat_jax.eval.metrics import image_metrics, summarize
 from ghsplat_jax.eval.report import collect_runs, table1_markdown, write_results, write_table1
 from ghsplat_jax.eval.runner import load_experiment
@@ -40,7 +40,32 @@ def test_table1_and_results_tables(tmp_path):
     charts = write_charts(rows, tmp_path / "report", "t")
     assert {p.name for p in charts} == {"psnr_vs_time.png", "psnr_vs_count.png"}
     assert all(p.read_bytes()[:4] == b"\x89PNG" for p in charts)
+    # the data behind the charts: every run with both values, at its metrics.json values
+    data = json.loads((tmp_path / "report" / "psnr_vs_count.json").read_text())
+    assert (data["x"], data["y"]) == ("num_gaussians", "psnr")
+    assert data["series"] == {"": [{"scene": "seg_a", "x": 300_000, "y": 30.5}, {"scene": "seg_b", "x": 410_000,
+                                                                                    "y": 28.25},
+                                   {"scene": "seg_c", "x": 1000, "y": 25.0}]}
+    time_data = json.loads((tmp_path / "report" / "psnr_vs_time.json").read_text())["series"][""]
+    assert [p["x"] for p in time_data] == [r["train_seconds"] for r in rows] == [30000.0, 41000.0, 100.0]
     assert "Gaussians" in table1_markdown(rows)
+
+
+def test_chart_series_split_by_variant_and_drawn_as_given():
+    rows = [{"scene": "a", "variant": "budget", "psnr": 30.0, "num_gaussians": 10},
+            {"scene": "a", "variant": "default", "psnr": 31.0, "num_gaussians": 40},
+            {"scene": "b", "variant": "default", "psnr": None, "num_gaussians": 50},  # not evaluated: left out
+            {"scene": "b", "variant": "budget", "psnr": 27.0, "num_gaussians": 12}]
+    series = scatter_series(rows, "num_gaussians", "psnr")
+    assert list(series) == ["budget", "default"]
+    assert [(p["scene"], p["x"], p["y"]) for p in series["budget"]] == [("a", 10, 30.0), ("b", 12, 27.0)]
+    assert [p["scene"] for p in series["default"]] == ["a"]
+    fig = scatter_figure(series, "surfels", "PSNR (dB)")
+    ax = fig.axes[0]
+    drawn = [c.get_offsets().tolist() for c in ax.collections]
+    assert drawn == [[[10, 30.0], [12, 27.0]], [[40, 31.0]]]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["budget", "default"]
+    assert scatter_series(rows, "train_seconds", "psnr") == {}
 
 
 def test_metrics_and_summary():

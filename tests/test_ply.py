@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import ghsplat_jax as gs
-from ghsplat_jax.scene.ply import is_3dgs_file, read_vertices
+from ghsplat_jax.data.ply import is_3dgs_file, read_vertices
 from raster_scenes import random_scene
 
 
@@ -65,7 +65,7 @@ def test_refuses_to_write_nan(tmp_path):
 def test_3dgs_gaussian_keeps_its_plane():
     """A 3DGS Gaussian whose smallest axis is x or y becomes a surfel in the plane of the other two."""
     from ghsplat_jax.core.quaternions import to_rotation_matrix
-    from ghsplat_jax.scene.ply import _surfel_from_3dgs
+    from ghsplat_jax.data.ply import _surfel_from_3dgs
 
     r = np.random.default_rng(0)
     q = r.normal(size=(3, 4))

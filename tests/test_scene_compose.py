@@ -210,9 +210,9 @@ def test_texture_file_and_mesh_surfaces_from_a_layout(tmp_path):
     assert crate.num > 0.7 * 6 * 0.25 / 0.05 ** 2
     # on the cube surface, normals (third rotation column) along the face normal
     assert np.all(np.abs(np.abs(crate.means).max(1) - 0.25) < 1e-4)
-    from ghsplat_jax.scene.transform import _quat_to_matrix
+    from ghsplat_jax.core.quaternions import to_rotation_matrix_np
 
-    n = _quat_to_matrix(crate.quats.astype(np.float64))[..., 2]
+    n = to_rotation_matrix_np(crate.quats.astype(np.float64))[..., 2]
     axis = np.argmax(np.abs(crate.means), axis=1)
     np.testing.assert_allclose(np.abs(n[np.arange(crate.num), axis]), 1.0, atol=1e-5)
 

@@ -9,7 +9,7 @@ import pytest
 import ghsplat_jax as gs
 from ghsplat_jax.cli import main as cli
 from ghsplat_jax.scene import edit, merge, stats
-from ghsplat_jax.scene.ply import read_vertices
+from ghsplat_jax.data.ply import read_vertices
 
 
 def _plane_with_floaters(seed=0):

@@ -7,7 +7,7 @@ pytest.importorskip("rosbags")
 
 from ghsplat_jax.scene import surfaces
 from ghsplat_jax.scene.merge import merge
-from ghsplat_jax.scene.ply import save_ply
+from ghsplat_jax.data.ply import save_ply
 from ghsplat_jax.sim import messages as m, recorder
 
 
@@ -69,21 +69,16 @@ def test_bad_scene_fails_before_output(tmp_path, capsys):
     assert "no such scene file" in capsys.readouterr().err
 
 
-def test_velocity_command_trajectory(rows_scene, tmp_path):
-    from ghsplat_jax.sim import command
+def test_velocity_command_trajectory(tmp_path):
+    from ghsplat_jax.sim import trajectory as tj
 
     cmd = tmp_path / "cmd.csv"
     cmd.write_text("v,w\n" + "0.5,0.0\n" * 10 + "0.5,0.5\n" * 10)
-    import argparse
-
-    p = argparse.ArgumentParser()
-    command.add_arguments(p)
-    args = p.parse_args([str(rows_scene), "--trajectory", str(cmd)])
-    from ghsplat_jax.sim.robot import Robot
-
-    args._robot = Robot()
-    traj = command._trajectory(args, None)
+    assert tj.is_twist_file(cmd) and not tj.is_twist_file(tmp_path / "path.json")
+    traj = tj.load_twist(cmd, dt=0.1)
     assert np.isclose(traj.duration, 2.0) and np.isclose(traj.x[10], 0.5) and np.isclose(traj.yaw[-1], 0.5)
+    slow = tj.load_twist(cmd, dt=0.1, max_speed=0.25, max_yaw_rate=0.1)  # the robot's limits clamp commands
+    assert np.isclose(slow.x[10], 0.25) and np.isclose(slow.yaw[-1], 0.1)
 
 
 def test_live_and_robot_config_errors_stop_before_publishing(rows_scene, tmp_path, capsys):

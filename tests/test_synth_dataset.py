@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.core.quaternions import to_rotation_matrix
+from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.scene.tags import load_tags
-from ghsplat_jax.synth import capture, command, config, dataset, render, scene as synth_scene
+from ghsplat_jax.synth import capture, config, dataset, render, scene as synth_scene
 
 W, H, VIEWS = 64, 48, 5
 
@@ -69,7 +70,7 @@ def test_colmap_text_describes_the_generator_cameras(written):
 def test_points3d_lie_on_visible_surfaces_and_reproject(written):
     s, cams, out = written
     _, images, points = parse_colmap(out / "sparse" / "0")
-    depth = [dataset.read_image(out / "depth" / f"{i:05d}.exr") for i in range(VIEWS)]
+    depth = [read_pixels(out / "depth" / f"{i:05d}.exr") for i in range(VIEWS)]
     n_obs = 0
     for (iid, q, t, cid, name, xy_id), cam in zip(images, cams):
         K, w2c = np.asarray(cam.K, np.float64), np.asarray(cam.world_to_cam, np.float64)
@@ -105,10 +106,10 @@ def test_transforms_json_matches_colmap(written):
 def test_ground_truth_images_round_trip(written):
     s, cams, out = written
     views = render.render_view(s, cams[2])
-    np.testing.assert_array_equal(dataset.read_image(out / "depth" / "00002.exr"), views["depth"])
-    np.testing.assert_array_equal(dataset.read_image(out / "normals" / "00002.exr"), views["normal"])
-    np.testing.assert_array_equal(dataset.read_image(out / "masks" / "00002.png"), views["instance"])
-    rgb = dataset.read_image(out / "images" / "00002.png")
+    np.testing.assert_array_equal(read_pixels(out / "depth" / "00002.exr"), views["depth"])
+    np.testing.assert_array_equal(read_pixels(out / "normals" / "00002.exr"), views["normal"])
+    np.testing.assert_array_equal(read_pixels(out / "masks" / "00002.png"), views["instance"])
+    rgb = read_pixels(out / "images" / "00002.png")
     assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8
     np.testing.assert_allclose(rgb / 255.0, views["rgb"], atol=1 / 255 + 1e-6)
     inst = json.loads((out / "instances.json").read_text())
@@ -143,16 +144,35 @@ def test_existing_dataset_is_not_clobbered(written, tmp_path):
 
 
 def test_command_line(tmp_path, capsys):
-    import argparse
+    """`ghsplat synth` end to end: every option reaches the files, and the project's reader loads them."""
+    from ghsplat_jax.cli import main
+    from ghsplat_jax.data import load_dataset
 
     toml = tmp_path / "scene.toml"
     toml.write_text("seed = 4\n[layout]\nrows = 1\nplants_per_row = 2\n[render]\ntexture_size = 64\n")
-    parser = argparse.ArgumentParser()
-    command.add_arguments(parser)
-    args = parser.parse_args(["--config", str(toml), "--out", str(tmp_path / "ds"), "--views", "3",
-                              "--width", "32", "--height", "24", "--path", "robot", "--points", "100", "--no-mesh"])
-    assert command.main(args) == 0
-    assert len(list((tmp_path / "ds" / "images").glob("*.png"))) == 3
+    out = tmp_path / "ds"
+    argv = ["synth", "--config", str(toml), "--out", str(out), "--views", "3", "--width", "32", "--height", "24",
+            "--path", "robot", "--points", "100", "--no-mesh", "--seed", "9", "--fps", "4"]
+    assert main(argv) == 0
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["00000.png", "00001.png", "00002.png"]
+    assert not (out / "mesh.ply").exists()
+    for i in range(3):
+        rgb = read_pixels(out / "images" / f"{i:05d}.png")
+        depth = read_pixels(out / "depth" / f"{i:05d}.exr")
+        normal = read_pixels(out / "normals" / f"{i:05d}.exr")
+        mask = read_pixels(out / "masks" / f"{i:05d}.png")
+        assert rgb.shape == (24, 32, 3) and rgb.dtype == np.uint8 and rgb.std() > 5
+        assert depth.shape == (24, 32) and depth.dtype == np.float32 and depth.min() >= 0 and depth.max() > 0
+        hit = depth > 0
+        np.testing.assert_allclose(np.linalg.norm(normal[hit], axis=-1), 1.0, atol=1e-4)
+        assert not normal[~hit].any() and mask.dtype == np.uint16 and not mask[~hit].any()
+    meta = json.loads((out / "transforms.json").read_text())
+    assert (meta["w"], meta["h"]) == (32, 24) and [f["time"] for f in meta["frames"]] == [0.0, 0.25, 0.5]
+    cfg = config.load_config(out / "scene.toml")
+    assert cfg.seed == 9 and (cfg.layout.rows, cfg.layout.plants_per_row, cfg.render.texture_size) == (1, 2, 64)
+    ds = load_dataset(out, split="all")
+    assert len(ds.train) == 3 and (ds.train[0].camera.width, ds.train[0].camera.height) == (32, 24)
+    np.testing.assert_allclose(ds.train[0].image, read_pixels(out / "images" / "00000.png") / 255.0, atol=1e-6)
     toml.write_text("[layout]\nrows = 0\n")
-    assert command.main(args) == 2
+    assert main(argv + ["--overwrite"]) == 2
     assert "layout.rows must be >= 1" in capsys.readouterr().err

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.train import densify, step as step_mod
-from ghsplat_jax.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, read_meta
+from ghsplat_jax.train.checkpoint import load_checkpoint, read_meta
 from ghsplat_jax.train.config import TrainConfig
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
-from ghsplat_jax.train.trainer import PLY_NAME, STATS_NAME, TrainingDivergedError, train
+from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, PLY_NAME, STATS_NAME
+from ghsplat_jax.train.trainer import TrainingDivergedError, train
 
 # Every test here uses this config (same step settings: the XLA binary is shared through the
 # persistent compilation cache).
@@ -51,7 +52,7 @@ def test_loss_decreases_and_outputs_written(run):
     assert np.mean([s["l1"] for s in last]) < 0.8 * np.mean([s["l1"] for s in first])
     assert np.mean([s["psnr"] for s in last]) > np.mean([s["psnr"] for s in first]) + 3.0
     assert all(s["finite"] for s in stats)
-    from ghsplat_jax.scene.ply import load_ply
+    from ghsplat_jax.data.ply import load_ply
 
     s = load_ply(out / PLY_NAME)
     assert s.num == run["result"].num_surfels == stats[-1]["num_surfels"]
@@ -69,6 +70,34 @@ def test_no_recompilation_across_steps_and_densification(run):
     buckets = {(s["capacity"], s["pair_capacity"]) for s in stats}
     assert run["traces"] == len(buckets)  # ... but the step compiled once per pool / pair bucket
     assert run["dens_traces"] <= len({s["capacity"] for s in stats})
+
+
+def test_budget_count_follows_the_cap_schedule(tmp_path):
+    """With --strategy budget every densification round grows the count by at most the
+    schedule's allowance (linear from the initial count to the cap), and by exactly that
+    when there are more candidates than room: the cap is followed, not just not exceeded."""
+    out = tmp_path / "budget"
+    cfg = CONFIG.replace(strategy="budget", max_surfels=400, densify_grad_threshold=1e-8)  # all seen are candidates
+    result = train(cfg, out, dataset=dataset())
+    meta = read_meta(out / CHECKPOINT_NAME)
+    initial, cap = meta["initial_count"], meta["max_surfels"]
+    assert cap == 400 and initial < cap
+    stats = [json.loads(line) for line in (out / STATS_NAME).read_text().splitlines()]
+    assert {s["capacity"] for s in stats} == {cap}  # the pool is allocated at the cap
+    prev, filled, targets = initial, 0, []
+    for s in stats:
+        if "candidates" in s:  # a densification round after iteration s["step"]
+            target = densify.budget_target(cfg, s["step"], initial, cap)
+            targets.append(target)
+            grown = prev + s["cloned"] + s["split"]
+            assert grown <= target, s
+            assert s["num_surfels"] == grown - s["pruned"], s
+            if s["skipped"]:  # more candidates than the allowance: filled up to the target
+                assert grown == target, s
+                filled += 1
+        prev = s["num_surfels"]
+    assert targets == sorted(targets) and targets[0] < targets[-1] < cap  # a ramp, not the cap at once
+    assert filled >= 3 and prev == result.num_surfels
 
 
 def test_resume_reproduces_state(run, tmp_path):

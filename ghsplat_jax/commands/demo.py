@@ -105,12 +105,13 @@ def _poses(model: Path) -> dict:
     """{image name: world_to_cam} of a COLMAP model folder (binary or text)."""
     import numpy as np
 
+    from ghsplat_jax.core.quaternions import to_rotation_matrix_np
     from ghsplat_jax.data import colmap
 
     poses = {}
     for image in colmap.read_images(colmap.model_file(model, "images")).values():
         w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = colmap.quat_to_matrix(image.qvec), image.tvec
+        w2c[:3, :3], w2c[:3, 3] = to_rotation_matrix_np(image.qvec), image.tvec
         poses[Path(image.name).name] = w2c
     return poses
 
@@ -128,17 +129,14 @@ def sfm_accuracy(sfm_model: Path, truth_model: Path) -> dict | None:
     return compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
 
 
-def _metrics(run: Path) -> dict:
-    path = run / "metrics.json"
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
 def _first(folder: Path, pattern: str) -> Path | None:
     found = sorted(folder.rglob(pattern)) if folder.is_dir() else []
     return found[0] if found else None
 
 
 def main(args) -> int:
+    from ghsplat_jax.train import run_dir
+
     mode = SETTINGS["quick" if args.quick else "full"]
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -162,10 +160,10 @@ def main(args) -> int:
     shutil.rmtree(out / "run", ignore_errors=True)
     stages.run("train", "train", "--data", out / "row", "--out", out / "run", "--steps", mode["steps"],
                "--downscale", mode["downscale"], "--no-progress")
-    metrics = _metrics(out / "run")
+    metrics = run_dir.read_metrics(out / "run") or {}
 
     lo, hi = _row_box(out / "row" / "tags.json")
-    (out / "layout.toml").write_text(_layout_toml(out / "run" / "point_cloud.ply", lo, hi))
+    (out / "layout.toml").write_text(_layout_toml(out / "run" / run_dir.PLY_NAME, lo, hi))
     stages.run("compose", "compose", out / "layout.toml", "--out", out / "greenhouse.ply")
     stages.run("simulate", "simulate", out / "greenhouse.ply", "--trajectory", "aisles",
                "--max-events", mode["sim_frames"], "--width", train_size[0], "--height", train_size[1],

@@ -1,4 +1,6 @@
-"""Dataset readers (COLMAP, NeRF transforms.json, LLFF), image I/O and train/test splits.
+"""Dataset readers (COLMAP, NeRF transforms.json, LLFF), image I/O, train/test splits and
+Gaussian PLY files (ply.py: training writes them, evaluation, scene tools and the simulator
+read them).
 
     from ghsplat_jax.data import load_dataset
     ds = load_dataset("../shared/datasets/llff_fern", downscale=8)

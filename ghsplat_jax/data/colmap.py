@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.core.quaternions import to_rotation_matrix_np
 from ghsplat_jax.data.errors import DatasetError
 from ghsplat_jax.data.frames import Frame, SceneSpec, image_sources, pinhole_K, rigid
 
@@ -224,16 +225,6 @@ def intrinsics(camera: ColmapCamera, where: str) -> tuple[np.ndarray, np.ndarray
     )
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a w-x-y-z quaternion (normalised here; text files round it)."""
-    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def image_folder(root: Path, model: Path) -> Path:
     """`images/` beside the model (or at the dataset root); the root itself as a last resort."""
     for base in (root, model.parent, model.parent.parent):
@@ -272,7 +263,7 @@ def read_colmap(root: Path, downscale: float, model: Path | None = None) -> Scen
             name=image.name,
             sources=image_sources(folder, image.name, downscale),
             K=K,
-            world_to_cam=rigid(quat_to_matrix(image.qvec), image.tvec, where),
+            world_to_cam=rigid(to_rotation_matrix_np(image.qvec), image.tvec, where),
             width=camera.width,
             height=camera.height,
             dist=dist,

@@ -2,7 +2,7 @@
 
 Colour is returned *premultiplied* by alpha (the form EXR stores and the one that
 filters correctly); `composite` puts it over a background. OpenImageIO is imported
-lazily; cv2 serves as a fallback reader (no EXR) where OpenImageIO is not installed.
+lazily and is the only image reader and writer (OpenCV misreads grey + alpha files).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.data.errors import DatasetError
+from ghsplat_jax.io_utils import atomic_path
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".hdr", ".webp")
 
@@ -25,20 +26,10 @@ def list_images(folder: Path) -> list[Path]:
     return sorted((p for p in folder.iterdir() if is_image_file(p)), key=lambda p: p.name)
 
 
-def _oiio():
-    try:
-        import OpenImageIO as oiio
-    except ImportError:
-        return None
-    return oiio
-
-
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding pixels."""
-    oiio = _oiio()
-    if oiio is None:
-        rgb, _ = read_image(path)
-        return rgb.shape[1], rgb.shape[0]
+    import OpenImageIO as oiio
+
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise DatasetError(f"{path}: cannot read image ({_oiio_message(oiio.geterror())})")
@@ -69,11 +60,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: image file not found")
-    oiio = _oiio()
-    if oiio is None:
-        pixels, alpha_channel, unassociated = _read_cv2(path)
-    else:
-        pixels, alpha_channel, unassociated = _read_oiio(oiio, path)
+    pixels, alpha_channel, unassociated = _read_oiio(path)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
     integer = np.issubdtype(pixels.dtype, np.integer)
@@ -94,7 +81,9 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     return np.ascontiguousarray(rgb), alpha
 
 
-def _read_oiio(oiio, path: Path):
+def _read_oiio(path: Path):
+    import OpenImageIO as oiio
+
     # Ask for the data as stored: PNG keeps straight alpha (we premultiply in float,
     # more precisely than OpenImageIO's 8-bit premultiplication); EXR is premultiplied.
     config = oiio.ImageSpec()
@@ -116,18 +105,6 @@ def _read_oiio(oiio, path: Path):
     finally:
         inp.close()
     return np.asarray(pixels), (alpha_channel if alpha_channel >= 0 else None), unassociated
-
-
-def _read_cv2(path: Path):
-    import cv2
-
-    pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if pixels is None:
-        raise DatasetError(f"{path}: cannot read image (OpenImageIO is not installed and OpenCV failed)")
-    if pixels.ndim == 3 and pixels.shape[2] >= 3:  # OpenCV is BGR(A)
-        pixels = pixels[:, :, [2, 1, 0] + list(range(3, pixels.shape[2]))]
-    channels = 1 if pixels.ndim == 2 else pixels.shape[2]
-    return pixels, (channels - 1 if channels in (2, 4) else None), True
 
 
 def composite(rgb: np.ndarray, alpha: np.ndarray | None, background) -> np.ndarray:
@@ -158,22 +135,27 @@ def resize_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def write_image(path: str | Path, image: np.ndarray, dtype: str | None = None) -> Path:
-    """Write (H,W) or (H,W,C) floats in [0,1] as uint8/uint16/half/float, atomically.
+    """Write (H,W) or (H,W,C) pixels atomically; the file format comes from the suffix.
 
-    dtype defaults to float for EXR and uint8 otherwise. C=4 is colour with straight alpha:
-    integer formats (PNG, TIFF) store straight alpha; EXR stores premultiplied colour, so
-    `read_image` gives colour x alpha back from either. Non-finite values are refused.
+    The one image writer of the project. Integer arrays (uint8, uint16) are stored as they
+    are; float arrays are values in [0, 1] for integer files (OpenImageIO rounds them) and
+    any finite values for float files. `dtype` is the stored type: "uint8", "uint16",
+    "half" or "float"; by default the array's own integer type, else float for EXR and
+    uint8 otherwise. C=4 is colour with straight alpha: integer formats (PNG, TIFF) store it
+    straight, EXR premultiplied, and `read_image` gives colour x alpha back from either. A
+    single float channel is named Z (every such file here is a depth map). Non-finite values
+    are refused.
     """
-    import os
-    import tempfile
-
     import OpenImageIO as oiio
 
     path = Path(path)
-    dtype = dtype or ("float" if path.suffix.lower() == ".exr" else "uint8")
-    image = np.asarray(image, np.float32)
-    if not np.all(np.isfinite(image)):
-        raise ValueError(f"refusing to write {path}: non-finite pixel values")
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        image = image.astype(np.float32, copy=False)
+        if not np.all(np.isfinite(image)):
+            raise ValueError(f"refusing to write {path}: non-finite pixel values")
+    dtype = dtype or (image.dtype.name if image.dtype.kind == "u" else
+                      "float" if path.suffix.lower() == ".exr" else "uint8")
     if image.ndim == 2:
         image = image[:, :, None]
     formats = {"uint8": oiio.UINT8, "uint16": oiio.UINT16, "half": oiio.HALF, "float": oiio.FLOAT}
@@ -184,20 +166,26 @@ def write_image(path: str | Path, image: np.ndarray, dtype: str | None = None) -
             image = np.concatenate([image[:, :, :3] * image[:, :, 3:], image[:, :, 3:]], axis=2)
         else:
             spec.attribute("oiio:UnassociatedAlpha", 1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, spec):
+    elif image.shape[2] == 1 and dtype in ("half", "float"):
+        spec.channelnames = ("Z",)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
             raise OSError(f"{path}: cannot write image ({_oiio_message(oiio.geterror())})")
-        ok = out.write_image(image)
+        ok = out.write_image(np.ascontiguousarray(image))
         out.close()
         if not ok:
             raise OSError(f"{path}: cannot write image ({_oiio_message(out.geterror())})")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
+
+
+def read_pixels(path: str | Path) -> np.ndarray:
+    """The pixels of a file as stored (native dtype, not premultiplied; (H, W) for one
+    channel): the exact inverse of `write_image` for integer arrays and float EXR."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise DatasetError(f"{path}: cannot read image ({_oiio_message(buf.geterror())})")
+    pixels = buf.get_pixels(buf.spec().format)
+    return pixels[..., 0] if pixels.shape[-1] == 1 else pixels

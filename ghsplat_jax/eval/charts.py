@@ -1,28 +1,42 @@
-"""Charts of a run set: PSNR against training time and against surfel count (PNG, Agg)."""
+"""Charts of a run set: PSNR against training time and against surfel count.
+
+Each chart is a PNG and, beside it, the JSON of the series it plots (name.json), so the
+numbers behind a picture can be read and checked. Figures are `matplotlib.figure.Figure`
+objects: no pyplot, no global backend switch.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from ghsplat_jax.io_utils import save_figure, write_json
 
-def scatter(rows: list[dict], x: str, y: str, xlabel: str, ylabel: str, path, title: str = "",
-            log_x: bool = False) -> Path | None:
-    """One marker per run, one colour per variant, labelled by scene; None when no row has both values."""
-    import matplotlib
+CHARTS = (  # file stem, x key, y key, x label, y label
+    ("psnr_vs_time", "train_seconds", "psnr", "training time (s)", "PSNR (dB)"),
+    ("psnr_vs_count", "num_gaussians", "psnr", "surfels", "PSNR (dB)"),
+)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    pts = [r for r in rows if r.get(x) is not None and r.get(y) is not None]
-    if not pts:
-        return None
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    variants = sorted({r.get("variant") or "" for r in pts})
-    for i, v in enumerate(variants):
-        sel = [r for r in pts if (r.get("variant") or "") == v]
-        ax.scatter([r[x] for r in sel], [r[y] for r in sel], label=v or None, color=f"C{i}", s=36, zorder=3)
-        for r in sel:
-            ax.annotate(r["scene"], (r[x], r[y]), textcoords="offset points", xytext=(4, 3), fontsize=7)
+def scatter_series(rows: list[dict], x: str, y: str) -> dict[str, list[dict]]:
+    """{variant: [{"scene", "x", "y"}, ...]} of the rows that have both values, variants sorted."""
+    series: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get(x) is not None and r.get(y) is not None:
+            series.setdefault(r.get("variant") or "", []).append({"scene": r["scene"], "x": r[x], "y": r[y]})
+    return dict(sorted(series.items()))
+
+
+def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, title: str = "", log_x: bool = False):
+    """One marker per run, one colour per variant, labelled by scene."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 4.4), dpi=120)
+    ax = fig.subplots()
+    for i, (variant, points) in enumerate(series.items()):
+        ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, color=f"C{i}", s=36,
+                   zorder=3)
+        for p in points:
+            ax.annotate(p["scene"], (p["x"], p["y"]), textcoords="offset points", xytext=(4, 3), fontsize=7)
     if log_x:
         ax.set_xscale("log")
     ax.set_xlabel(xlabel)
@@ -30,24 +44,21 @@ def scatter(rows: list[dict], x: str, y: str, xlabel: str, ylabel: str, path, ti
     ax.grid(True, alpha=0.3)
     if title:
         ax.set_title(title)
-    if any(variants):
+    if any(series):
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return fig
 
 
 def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
+    """The PNG charts of CHARTS that have data, each with its series as JSON beside it."""
     folder = Path(folder)
-    made = [
-        scatter(rows, "train_seconds", "psnr", "training time (s)", "PSNR (dB)", folder / "psnr_vs_time.png",
-                title, log_x=True),
-        scatter(rows, "num_gaussians", "psnr", "surfels", "PSNR (dB)", folder / "psnr_vs_count.png", title,
-                log_x=True),
-    ]
-    return [p for p in made if p is not None]
+    made = []
+    for stem, x, y, xlabel, ylabel in CHARTS:
+        series = scatter_series(rows, x, y)
+        if not series:
+            continue
+        write_json(folder / f"{stem}.json", {"x": x, "y": y, "title": title, "series": series})
+        made.append(save_figure(scatter_figure(series, xlabel, ylabel, title, log_x=True), folder / f"{stem}.png",
+                                dpi=120))
+    return made

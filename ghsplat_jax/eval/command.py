@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args) -> int:
     from ghsplat_jax.eval.evaluate import evaluate_run
-    from ghsplat_jax.train.trainer import PLY_NAME
+    from ghsplat_jax.train.run_dir import PLY_NAME
 
     status = 0
     for run in args.run_dir:

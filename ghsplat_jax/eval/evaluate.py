@@ -1,11 +1,9 @@
 """Evaluate trained surfels on a dataset's views: metrics per view and split, render time,
-renders with depth and normal maps, and the run's metrics.json."""
+renders with depth and normal maps, and the run's metrics.json (train/run_dir.py: where)."""
 
 from __future__ import annotations
 
 import dataclasses
-
-import json
 import logging
 import math
 import time
@@ -14,12 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.eval.metrics import image_metrics, summarize
-from ghsplat_jax.io_utils import write_json
+from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
-
-METRICS_NAME = "metrics.json"
-PER_VIEW_NAME = "per_view.json"
 
 
 def _even_subset(views, k: int):
@@ -73,7 +68,8 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     import jax
     from tqdm.auto import tqdm
 
-    import ghsplat_jax as gs
+    from ghsplat_jax.raster.render import render
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_renders = config.save_test_renders if save_renders is None else save_renders
@@ -86,10 +82,10 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     for split, views in splits.items():
         for v in tqdm(views, desc=f"eval {split}", disable=not progress, leave=False):
             if not warm:  # compile outside the timing
-                jax.block_until_ready(gs.render(surfels, v.camera, rcfg).rgb)
+                jax.block_until_ready(render(surfels, v.camera, rcfg).rgb)
                 warm = True
             t = time.perf_counter()
-            out = gs.render(surfels, v.camera, rcfg)
+            out = render(surfels, v.camera, rcfg)
             jax.block_until_ready(out.rgb)
             dt = time.perf_counter() - t
             times.append(dt)
@@ -98,7 +94,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
                 raise FloatingPointError(f"view {v.name}: non-finite metrics {m}")
             rows.append(dict(split=split, name=v.name, render_seconds=dt, **m))
             if save_renders and split == "test":
-                save_view_maps(out_dir / "renders" / "test", v.name, out)
+                save_view_maps(out_dir / rd.TEST_RENDERS, v.name, out)
     metrics = {
         "train": summarize([r for r in rows if r["split"] == "train"]),
         "test": summarize([r for r in rows if r["split"] == "test"]),
@@ -109,67 +105,27 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
         "image_size": ([int(dataset.train[0].camera.width), int(dataset.train[0].camera.height)]
                        if dataset.train else None),
         "data": str(config.data),
-        "peak_rss_mb": max(peak_rss_mb(), train_peak_rss_mb or 0.0),
+        "peak_rss_mb": max(rd.peak_rss_mb(), train_peak_rss_mb or 0.0),
         "strategy": config.strategy,
     }
-    write_json(out_dir / PER_VIEW_NAME, rows)
-    write_json(out_dir / METRICS_NAME, metrics)
+    rd.write_metrics(out_dir, metrics, rows)
     return metrics
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (training and evaluation), in MiB."""
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def snapshot_dir(run_dir, step: int) -> Path:
-    """Where the evaluation of an unfinished run's checkpoint at `step` goes."""
-    return Path(run_dir) / "snapshots" / f"step_{int(step):06d}"
-
-
-def load_run(run_dir):
-    """(config, surfels, checkpoint metadata or {}, finished) of a training run folder: the
-    surfels of point_cloud.ply, or of the checkpoint while the run is unfinished."""
-    from ghsplat_jax.scene.ply import load_ply
-    from ghsplat_jax.train import checkpoint as ckpt
-    from ghsplat_jax.train import optim
-    from ghsplat_jax.train.config import load_config
-    from ghsplat_jax.train.trainer import CONFIG_NAME, PLY_NAME, load_run_checkpoint
-
-    run_dir = Path(run_dir)
-    cfg_path = run_dir / CONFIG_NAME
-    if not cfg_path.is_file():
-        raise FileNotFoundError(f"{run_dir}: not a training run (no {CONFIG_NAME})")
-    config = load_config(cfg_path)
-    ply = run_dir / PLY_NAME
-    checkpoint = run_dir / ckpt.CHECKPOINT_NAME
-    meta = ckpt.read_meta(checkpoint) if checkpoint.is_file() else {}
-    if ply.is_file():
-        return config, load_ply(ply), meta, True
-    if not meta:
-        raise FileNotFoundError(f"{ply}: missing and no {ckpt.CHECKPOINT_NAME} to evaluate; the run has not started")
-    state, _ = load_run_checkpoint(checkpoint, optim.make_optimizers(config))
-    return config, state.active_surfels(), meta, False
 
 
 def evaluate_run(run_dir, progress: bool = True) -> dict:
     """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
     checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its
     checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent."""
-    from ghsplat_jax.train.trainer import load_training_data
-
     run_dir = Path(run_dir)
-    config, surfels, meta, finished = load_run(run_dir)
+    config, surfels, meta, finished = rd.load_run(run_dir)
     seconds, steps = meta.get("train_seconds"), meta.get("step")
     out_dir = run_dir
     if not finished:
-        out_dir = snapshot_dir(run_dir, steps)
+        out_dir = rd.snapshot_dir(run_dir, steps)
         log.info("%s: unfinished; evaluating the checkpoint at step %d into %s", run_dir, steps, out_dir)
-    if not meta and (run_dir / METRICS_NAME).is_file():
-        old = json.loads((run_dir / METRICS_NAME).read_text())
+    old = None if meta else rd.read_metrics(run_dir)
+    if old:
         seconds, steps = old.get("train_seconds"), old.get("steps")
-    dataset = load_training_data(config)
+    dataset = rd.load_training_data(config)
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
                     train_peak_rss_mb=meta.get("peak_rss_mb"))

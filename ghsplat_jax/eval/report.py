@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from pathlib import Path
 
 from ghsplat_jax.io_utils import atomic_write
+from ghsplat_jax.train.run_dir import read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
@@ -21,10 +21,9 @@ RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
     """One table row from RUN_DIR/metrics.json (test metrics, or train when there is no test split)."""
     run_dir = Path(run_dir)
-    path = run_dir / "metrics.json"
-    if not path.is_file():
+    m = read_metrics(run_dir)
+    if m is None:
         return None
-    m = json.loads(path.read_text())
     has_test = bool((m.get("test") or {}).get("num_views"))
     split = "test" if has_test else "train"
     s = m[split]

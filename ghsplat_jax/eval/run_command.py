@@ -23,6 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args) -> int:
     from ghsplat_jax.eval.runner import load_experiment, run_experiment
     from ghsplat_jax.train.config import ConfigError
+    from ghsplat_jax.train.run_dir import has_checkpoint
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     overrides = {"steps": args.steps} if args.steps is not None else None
@@ -33,7 +34,7 @@ def main(args) -> int:
         return 2
     if args.list:
         for r in exp.runs:
-            state = "finished" if r.finished else ("interrupted" if (r.out_dir / "checkpoint.npz").exists() else "todo")
+            state = "finished" if r.finished else ("interrupted" if has_checkpoint(r.out_dir) else "todo")
             print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
                   f"strategy={r.config.strategy})")
         return 0

@@ -26,6 +26,7 @@ import traceback
 from pathlib import Path
 
 from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides
+from ghsplat_jax.train.run_dir import has_checkpoint, is_evaluated
 
 log = logging.getLogger("ghsplat.run")
 
@@ -41,7 +42,7 @@ class PlannedRun:
 
     @property
     def finished(self) -> bool:
-        return (self.out_dir / "metrics.json").is_file()
+        return is_evaluated(self.out_dir)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,12 +102,25 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
     return Experiment(name, spec.get("description", ""), out_root, runs, path)
 
 
+def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
+                       until: int | None = None) -> dict:
+    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
+    or when stopped early by `until`)."""
+    from ghsplat_jax.eval.evaluate import evaluate as evaluate_fn
+    from ghsplat_jax.train import train
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    dataset = dataset if dataset is not None else load_training_data(config)
+    result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
+    if not evaluate or result.steps < config.resolved().steps:
+        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
+    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
+
+
 def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
                    evaluate_only: bool = False) -> dict:
     """Train every unfinished run (resuming interrupted ones), then write the reports.
     Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
-    from ghsplat_jax.train.command import run as train_run
-
     failed = []
     for r in exp.runs:
         if only and r.scene not in only and f"{r.scene}/{r.variant}" not in only:
@@ -118,7 +132,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
             continue
         log.info("%s/%s: training into %s", r.scene, r.variant, r.out_dir)
         try:
-            train_run(r.config, r.out_dir, resume=(r.out_dir / "checkpoint.npz").is_file())
+            train_and_evaluate(r.config, r.out_dir, resume=has_checkpoint(r.out_dir))
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # one broken scene must not stop the set

@@ -15,6 +15,9 @@ from ghsplat_jax.raster.config import RasterConfig
 _C0 = 0.28209479177387814
 
 
+# Its own copy of core.quaternions' matrix formula, on purpose: the reference is the
+# independent float64 oracle the tiled rasterizer is tested against, so it shares no
+# rotation code with it (tests/test_rotations.py checks core's copy against scipy).
 def _quat_to_matrix(q):
     w, x, y, z = q.T
     return np.stack([

@@ -1,6 +1,6 @@
-"""Scene tools: PLY I/O, editing, transforms, composition, markers, mesh extraction.
+"""Scene tools: editing, transforms, composition, markers, mesh extraction (PLY I/O is
+data/ply.py, below training, which writes and reads PLYs too).
 
-    ply        load_ply / save_ply (2DGS layout; 3DGS on read; viewer-compatible on write)
     edit       crops (box, sphere, convex hull), opacity, NaN/Inf, floaters -> (Surfels, kept_mask)
     stats      per-file statistics as a JSON-ready dict
     transform  rescale, rigid transform and mirror with SH rotation (core.sh_rotation)

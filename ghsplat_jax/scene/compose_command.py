@@ -28,7 +28,7 @@ def default_tags_path(out: Path) -> Path:
 def main(args) -> int:
     from ghsplat_jax.scene.compose import compose
     from ghsplat_jax.scene.layout import load_layout
-    from ghsplat_jax.scene.ply import PlyError, save_ply
+    from ghsplat_jax.data.ply import PlyError, save_ply
     from ghsplat_jax.scene.tags import save_tags
 
     out = Path(args.out)

@@ -62,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _hull_points(path: str) -> np.ndarray:
     if path.lower().endswith(".ply"):
-        from ghsplat_jax.scene.ply import read_vertices
+        from ghsplat_jax.data.ply import read_vertices
 
         v = read_vertices(path)
         return np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
@@ -75,7 +75,7 @@ def _hull_points(path: str) -> np.ndarray:
 def run(args) -> dict:
     """Everything but argument parsing; returns the statistics dict."""
     from ghsplat_jax.scene import edit, merge, stats, transform
-    from ghsplat_jax.scene.ply import save_ply
+    from ghsplat_jax.data.ply import save_ply
 
     parts, names = merge.load_many(args.inputs, allow_mixed_3dgs=args.allow_3dgs_mix)
     s = merge.merge(parts, args.sh_policy, names, degree=args.sh_degree)
@@ -142,7 +142,7 @@ def run(args) -> dict:
 
 
 def main(args) -> int:
-    from ghsplat_jax.scene.ply import PlyError
+    from ghsplat_jax.data.ply import PlyError
 
     try:
         with warnings.catch_warnings():

@@ -62,7 +62,7 @@ def merge(parts: list[Surfels], policy: str = "pad", names: list[str] | None = N
 def load_many(paths: list[str | os.PathLike], allow_mixed_3dgs: bool = False
               ) -> tuple[list[Surfels], list[str]]:
     """Load PLYs; 3DGS files mixed with 2DGS ones raise MixedFormatError unless allowed."""
-    from ghsplat_jax.scene.ply import is_3dgs_file, load_ply
+    from ghsplat_jax.data.ply import is_3dgs_file, load_ply
 
     paths = [Path(p) for p in paths]
     kinds = {p: is_3dgs_file(p) for p in paths}  # raises PlyError for bad files

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 from ghsplat_jax.core import sh
+from ghsplat_jax.core.quaternions import from_rotation_matrix
 from ghsplat_jax.core.surfels import Surfels
 
 ColourFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (points (N,3), uv (N,2) m) -> rgb (N,3)
@@ -94,13 +95,6 @@ def ground_colour(captured: Surfels, k: int = 8, max_height: float | None = None
     return colour
 
 
-def _frames_to_quats(frames: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    xyzw = Rotation.from_matrix(frames).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
-
-
 def surfels_from_samples(points, normals, tangents, colour: np.ndarray, sigma,
                          opacity_logit: float = OPAQUE_LOGIT, sh_degree: int = 0) -> Surfels:
     """Flat isotropic surfels at `points`, normal `normals`, first tangent axis `tangents`."""
@@ -114,7 +108,7 @@ def surfels_from_samples(points, normals, tangents, colour: np.ndarray, sigma,
     sigma = np.broadcast_to(np.asarray(sigma, np.float64), (count,))
     f32 = lambda a: np.ascontiguousarray(a, np.float32)
     return Surfels(
-        means=f32(points), quats=f32(_frames_to_quats(frames)),
+        means=f32(points), quats=f32(from_rotation_matrix(frames)),
         log_scales=f32(np.repeat(np.log(sigma)[:, None], 2, axis=1)),
         opacity_logits=np.full(count, opacity_logit, np.float32),
         sh_dc=f32(sh.rgb_to_dc(np.asarray(colour, np.float64))),

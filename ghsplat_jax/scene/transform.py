@@ -9,40 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ghsplat_jax.core import quaternions
 from ghsplat_jax.core.sh_rotation import transform_sh_rest
 from ghsplat_jax.core.surfels import Surfels
 
 
-# numpy float64 versions of core.quaternions (which is jnp, float32): edits are host-side
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    xyzw = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1).reshape(R.shape[:-2] + (4,))
-
-
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
 def rotation_from_euler(degrees_xyz) -> np.ndarray:
     """R = Rz @ Ry @ Rx (extrinsic x, then y, then z), angles in degrees."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_euler("xyz", np.asarray(degrees_xyz, np.float64), degrees=True).as_matrix()
+    return quaternions.from_euler_xyz(degrees_xyz, degrees=True)
 
 
 def yaw_matrix(yaw_deg: float) -> np.ndarray:
@@ -77,13 +51,13 @@ def similarity(s: Surfels, scale: float = 1.0, M=None, t=None) -> Surfels:
     means = (s.means.astype(np.float64) * scale) @ M.T + t
     log_scales = s.log_scales + np.float32(np.log(scale))
     if det > 0:
-        qm = _matrix_to_quat(M[None])[0]
-        quats = _quat_multiply(np.broadcast_to(qm, s.quats.shape), s.quats.astype(np.float64))
+        qm = quaternions.from_rotation_matrix(M[None])[0]
+        quats = quaternions.multiply_np(np.broadcast_to(qm, s.quats.shape), s.quats.astype(np.float64))
     else:
-        frames = M @ _quat_to_matrix(s.quats.astype(np.float64))  # columns t_u, t_v, n
+        frames = M @ quaternions.to_rotation_matrix_np(s.quats.astype(np.float64))  # columns t_u, t_v, n
         frames = frames[..., [1, 0, 2]]
         norm = np.linalg.norm(s.quats.astype(np.float64), axis=-1, keepdims=True)
-        quats = _matrix_to_quat(frames) * norm  # keep the stored (unnormalised) magnitude
+        quats = quaternions.from_rotation_matrix(frames) * norm  # keep the stored (unnormalised) magnitude
         log_scales = log_scales[:, ::-1]
     sh_rest = s.sh_rest if not s.sh_rest.shape[1] or np.allclose(M, np.eye(3), atol=1e-12) else \
         transform_sh_rest(s.sh_rest, M)

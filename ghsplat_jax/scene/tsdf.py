@@ -161,7 +161,7 @@ def mesh_from_surfels(surfels, voxel: float, views_per_ring: int = 12, size: int
     radius = 0.5 * extent / np.tan(np.deg2rad(fov_x_deg) / 2) * 1.1
     cams = orbit_cameras(centre, radius, [-0.5 * radius, 0.0, 0.5 * radius], views_per_ring,
                          size, size, fov_x_deg)
-    import ghsplat_jax as gs
+    from ghsplat_jax.raster import RasterConfig
 
-    config = config or gs.RasterConfig(near=min(0.2, 0.1 * radius))
+    config = config or RasterConfig(near=min(0.2, 0.1 * radius))
     return fuse_renders(surfels, cams, lo, hi, voxel, config=config).extract_mesh()

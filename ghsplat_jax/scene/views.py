@@ -1,6 +1,6 @@
 """Rendering helpers for scene tools: shape-stable renders and camera rings.
 
-gs.render compiles once per (surfel count, SH degree, pair capacity, image size, config).
+raster.render compiles once per (surfel count, SH degree, pair capacity, image size, config).
 Scene tools render many different edits (markers, crops, fused views); padding the count
 to a power of two and the SH degree to a fixed value lets them share one compiled program.
 Padding surfels sit at the camera centre, so the near-plane cull drops them.
@@ -36,12 +36,12 @@ def pad_for_render(s: Surfels, camera_center, num: int | None = None, sh_degree:
 
 
 def render_stable(s: Surfels, camera, config=None, num: int | None = None, sh_degree: int = 3):
-    """gs.render on padded surfels (same image as unpadded; see the module docstring).
+    """raster.render on padded surfels (same image as unpadded; see the module docstring).
     Give `config.pair_capacity` too, or the capacity bucket may still vary between views."""
-    import ghsplat_jax as gs
+    from ghsplat_jax.raster import render
 
     center = np.asarray(camera.center, np.float64)
-    return gs.render(pad_for_render(s.to_numpy(), center, num, sh_degree), camera, config)
+    return render(pad_for_render(s.to_numpy(), center, num, sh_degree), camera, config)
 
 
 def orbit_cameras(target, radius: float, heights, count: int, width: int, height: int,

@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.io_utils import write_json
+from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
 from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
 from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
@@ -90,24 +89,11 @@ def _timed(timings: dict, name: str, bar=None):
         bar.update(1)
 
 
-def _replace_dir(new: Path, target: Path) -> None:
-    """Move `new` to `target`, replacing it; a reader sees the old or the new folder."""
-    old = target.with_name(f".{target.name}.old")
-    shutil.rmtree(old, ignore_errors=True)
-    if target.exists():
-        os.replace(target, old)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(new, target)
-    shutil.rmtree(old, ignore_errors=True)
-
-
 def write_model(reconstruction, target: Path) -> None:
     """Write a COLMAP binary model to `target` atomically (temp folder + rename)."""
-    tmp = target.with_name(f".{target.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    reconstruction.write_binary(str(tmp))
-    _replace_dir(tmp, target)
+    with atomic_path(target) as tmp:
+        tmp.mkdir()
+        reconstruction.write_binary(str(tmp))
 
 
 # ---------------------------------------------------------------------------- input
@@ -292,8 +278,8 @@ def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> No
         tmp, model_dir, root, undistort_options=undistort_options,
         num_threads=options.num_threads,
     )
-    _replace_dir(tmp / "images", out / "images")
-    _replace_dir(tmp / "sparse", out / "sparse" / "0")
+    replace_path(tmp / "images", out / "images")
+    replace_path(tmp / "sparse", out / "sparse" / "0")
     shutil.rmtree(tmp, ignore_errors=True)  # stereo/ and scripts are for COLMAP's MVS
 
 

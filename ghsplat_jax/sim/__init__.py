@@ -16,6 +16,7 @@
     localize.py       AprilTag detection and localization evaluation
     viewer.py         viser web viewer
     command.py, localize_command.py   `ghsplat simulate`, `ghsplat localize`
+    motion_args.py    their shared robot and trajectory options
 
 Heavy dependencies (jax rendering, rosbags, cyclonedds, cv2, viser) are imported by the
 modules that need them.

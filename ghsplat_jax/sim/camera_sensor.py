@@ -68,9 +68,9 @@ def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25) -> int:
 
 def sensor_config(raster_config, pair_capacity, background=(0.0, 0.0, 0.0)):
     """The sensors' raster settings: a static pair capacity whose overflow is reported, not raised."""
-    import ghsplat_jax as gs
+    from ghsplat_jax.raster import RasterConfig
 
-    cfg = raster_config or gs.RasterConfig(near=0.2, background=tuple(background))
+    cfg = raster_config or RasterConfig(near=0.2, background=tuple(background))
     return dataclasses.replace(cfg, pair_capacity=pair_capacity, on_overflow="report")
 
 
@@ -78,9 +78,9 @@ def sensor_render_fn(render_fn, cfg):
     """`render_fn` (a test fake) or the rasterizer with `cfg`."""
     if render_fn is not None:
         return render_fn
-    import ghsplat_jax as gs
+    from ghsplat_jax.raster import render
 
-    return lambda surfels, cam: gs.render(surfels, cam, cfg)
+    return lambda surfels, cam: render(surfels, cam, cfg)
 
 
 def initial_capacity(render_fn, surfels, cameras, cfg) -> int:

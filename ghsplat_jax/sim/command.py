@@ -12,7 +12,7 @@ import logging
 import sys
 import time
 import tomllib
-from pathlib import Path
+from ghsplat_jax.sim import motion_args
 
 HELP = "Simulate the robot's camera, LiDAR and tf in a scene; record a ROS 2 bag (MCAP) or publish live over DDS."
 
@@ -20,14 +20,7 @@ HELP = "Simulate the robot's camera, LiDAR and tf in a scene; record a ROS 2 bag
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", metavar="LAYOUT_OR_PLY", help="layout .toml (composed in memory) or scene .ply")
     p.add_argument("--tags", metavar="tags.json", help="marker poses (default: <stem>.tags.json beside a PLY)")
-    p.add_argument("--trajectory", default="aisles", metavar="aisles|FILE",
-                   help="'aisles' (serpentine along every aisle), a waypoint file (.csv x,y[,yaw][,t] / .json / "
-                        ".toml), or a .csv of velocity commands with columns v,w[,dt] (differential drive)")
-    p.add_argument("--rows", metavar="rows.json|toml", help="row boxes for 'aisles' (default: from the layout or the surfels)")
-    p.add_argument("--speed", type=float, default=0.5, help="m/s along waypoints and aisles")
-    p.add_argument("--aisle-margin", type=float, default=1.0, help="metres past the row ends where the robot turns")
-    p.add_argument("--dt", type=float, default=0.1, help="seconds per velocity command (when the file has no dt)")
-    p.add_argument("--robot", metavar="robot.toml", help="robot dimensions and sensor mounts (see sim/robot.py)")
+    motion_args.add_arguments(p)
     p.add_argument("--duration", type=float, help="simulated seconds to run (default: the whole trajectory)")
     p.add_argument("--max-events", type=int, help="stop after this many sensor frames (quick runs)")
     p.add_argument("--camera-rate", type=float, default=10.0, help="Hz (0: no camera)")
@@ -60,66 +53,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true")
 
 
-def _trajectory(args, scene):
-    from ghsplat_jax.sim import scene_io, trajectory as tj
-
-    if args.trajectory == "aisles":
-        rows = tj.load_row_boxes(args.rows) if args.rows else scene_io.scene_rows(scene)
-        return tj.from_waypoints(tj.aisle_waypoints(rows, margin=args.aisle_margin), speed=args.speed)
-    path = Path(args.trajectory)
-    if path.suffix.lower() == ".csv":
-        import csv
-
-        with open(path, newline="") as fh:
-            header = [h.strip() for h in (next(csv.reader(fh), None) or [])]
-        if {"v", "w"} <= set(header):
-            return _twist_trajectory(path, args)
-    return tj.load_waypoints(path, speed=args.speed)
-
-
-def _twist_trajectory(path: Path, args):
-    import csv
-
-    import numpy as np
-
-    from ghsplat_jax.sim import trajectory as tj
-
-    try:
-        with open(path, newline="") as fh:
-            rows = [{k.strip(): float(v) for k, v in r.items() if k} for r in csv.DictReader(fh)]
-        v = np.array([r["v"] for r in rows]); w = np.array([r["w"] for r in rows])
-        dts = {r.get("dt", args.dt) for r in rows}
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: bad velocity command file ({exc})") from None
-    if len(dts) != 1:
-        raise ValueError(f"{path}: velocity commands need one constant dt")
-    robot = args._robot
-    v, w = tj.clamp_twist(v, w, robot.max_speed, robot.max_yaw_rate)
-    return tj.integrate_twist(v, w, dts.pop())
-
-
 def main(args) -> int:
-    import numpy as np
-
-    from ghsplat_jax.sim import beams, robot as robot_mod, scene_io, simulate
+    from ghsplat_jax.sim import beams, scene_io, simulate
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
     from ghsplat_jax.sim.lidar import Lidar
+    from tqdm.auto import tqdm
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="ghsplat simulate: %(levelname)s %(message)s")
     say = (lambda *a: None) if args.quiet else (lambda msg: print(f"ghsplat simulate: {msg}", file=sys.stderr))
     # Everything that can fail on input is checked before any file or DDS entity is created.
     try:
-        args._robot = robot_mod.robot_from_config(tomllib.loads(Path(args.robot).read_text()).get("robot", {})
-                                                  if args.robot else None)
+        robot = motion_args.load_robot(args.robot)
         scene = scene_io.load_scene(args.scene, args.tags)
-        traj = _trajectory(args, scene)
+        traj = motion_args.load_trajectory(args, scene, robot)
         pattern = None
         if args.lidar.lower() != "none":
             pattern = beams.get_pattern(args.lidar)
             if args.range_noise is not None:
                 pattern = pattern.replace(noise_std=args.range_noise)
-        camera = CameraModel.from_fov(args._robot.optical_frame, args.width, args.height, args.fov)
+        camera = CameraModel.from_fov(robot.optical_frame, args.width, args.height, args.fov)
         if args.record:
             from ghsplat_jax.sim.recorder import bag_dir
 
@@ -142,7 +95,7 @@ def main(args) -> int:
                              normals=args.normals, organised_cloud=args.organised)
     renderer = CameraRenderer()
     sinks = []
-    recorder = node = viewer = None
+    recorder = node = viewer = bar = None
     try:
         if args.record:
             from ghsplat_jax.sim.recorder import BagRecorder
@@ -153,25 +106,24 @@ def main(args) -> int:
             from ghsplat_jax.sim.dds_node import SimNode
 
             node = SimNode(scene.surfels, domain_id=args.domain_id, localhost_only=not args.any_interface,
-                           camera_renderer=renderer, lidar=lidar, lidar_frame=args._robot.lidar_frame,
+                           camera_renderer=renderer, lidar=lidar, lidar_frame=robot.lidar_frame,
                            publish_depth=args.depth, organised_cloud=args.organised)
             sinks.append(_live_sink(node))
             say(f"live on DDS domain {args.domain_id} ({'any interface' if args.any_interface else 'loopback only'})")
         if args.viewer:
             from ghsplat_jax.sim.viewer import SimViewer
 
-            viewer = SimViewer(scene, args._robot, port=args.viewer_port)
+            viewer = SimViewer(scene, robot, port=args.viewer_port)
             sinks.append(viewer.sink)
             say(f"viewer at http://localhost:{args.viewer_port}")
         start_wall, counts = time.monotonic(), {}
-        last = [0.0]
+        bar = tqdm(desc="simulate", unit="frame", disable=args.quiet, dynamic_ncols=True)
 
         def progress(i, n):
-            if not args.quiet and (time.monotonic() - last[0] > 5 or i == n):
-                last[0] = time.monotonic()
-                say(f"{i}/{n} sensor frames")
+            bar.total = n
+            bar.update(i - bar.n)
 
-        for topic, msg, t, payload in simulate.run(scene.surfels, args._robot, traj, cfg, camera, lidar,
+        for topic, msg, t, payload in simulate.run(scene.surfels, robot, traj, cfg, camera, lidar,
                                                    renderer, progress):
             if args.live and args.real_time > 0:
                 simulate.pace(start_wall, cfg.clock_start, t, args.real_time)
@@ -191,6 +143,8 @@ def main(args) -> int:
             recorder = None
         return 130
     finally:
+        if bar is not None:
+            bar.close()
         if recorder is not None:
             recorder.__exit__(None, None, None)
             say(f"wrote {recorder.path} ({sum(recorder.counts.values())} messages)")

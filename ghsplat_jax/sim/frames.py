@@ -2,7 +2,8 @@
 
 Conventions: REP-103 body frames (x forward, y left, z up); optical frames in the
 OpenCV convention (z forward, x right, y down). A transform named `a_from_b` maps
-points in frame b to frame a; ROS quaternions are x-y-z-w (scipy's order too).
+points in frame b to frame a. Quaternions here are ROS's x-y-z-w (geometry_msgs), named
+`quat_xyzw` at every use; the package's own w-x-y-z ones convert in core.quaternions.
 """
 
 from __future__ import annotations
@@ -10,7 +11,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from ghsplat_jax.core import quaternions
 
 # Columns: the optical axes (x right, y down, z forward) written in the body frame.
 LINK_FROM_OPTICAL_R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -37,7 +39,7 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """R = Rz(yaw) Ry(pitch) Rx(roll), the URDF/ROS fixed-axis convention."""
-    return Rotation.from_euler("xyz", [roll, pitch, yaw]).as_matrix()
+    return quaternions.from_euler_xyz([roll, pitch, yaw])
 
 
 def from_xyz_rpy(xyz, rpy) -> np.ndarray:
@@ -51,8 +53,9 @@ def planar(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:
 
 
 def quat_xyzw(T_or_R: np.ndarray) -> np.ndarray:
+    """The x-y-z-w quaternion (ROS order, w >= 0) of a rotation or transform."""
     R = np.asarray(T_or_R, np.float64)[..., :3, :3]
-    return Rotation.from_matrix(R).as_quat()
+    return quaternions.wxyz_to_xyzw(quaternions.from_rotation_matrix(R))
 
 
 def from_pose(position, quat_xyzw_, unit_tol: float = 1e-3) -> np.ndarray:
@@ -64,7 +67,7 @@ def from_pose(position, quat_xyzw_, unit_tol: float = 1e-3) -> np.ndarray:
     norm = np.linalg.norm(q)
     if abs(norm - 1.0) > unit_tol:
         raise ValueError(f"quaternion norm {norm:.6f} is not 1")
-    return make_transform(Rotation.from_quat(q / norm).as_matrix(), p)
+    return make_transform(quaternions.to_rotation_matrix_np(quaternions.xyzw_to_wxyz(q)), p)
 
 
 def yaw_of(T: np.ndarray) -> float:

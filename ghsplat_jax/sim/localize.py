@@ -232,29 +232,46 @@ def markdown(result: dict, title: str, plot_name: str | None) -> str:
     return "\n".join(lines)
 
 
-def plot(result: dict, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ghsplat_jax.io_utils import atomic_write
-
+def plot_series(result: dict) -> dict:
+    """The numbers the localization chart draws: detection rate per distance and angle bin
+    (bin centre, rate, bin width) and position / yaw error against time (NaN: no estimate)."""
     s, fr = result["summary"], result["frames"]
-    fig, ax = plt.subplots(2, 2, figsize=(10, 7))
-    for a, key, label in ((ax[0, 0], "rate_vs_distance", "distance (m)"), (ax[0, 1], "rate_vs_angle", "viewing angle (deg)")):
-        rows = s[key]
-        if rows:
-            a.bar([(r["lo"] + r["hi"]) / 2 for r in rows], [r["detection_rate"] for r in rows],
-                  width=[0.9 * (r["hi"] - r["lo"]) for r in rows])
-        a.set_xlabel(label); a.set_ylabel("detection rate"); a.set_ylim(0, 1.05)
-    t = [f["t"] for f in fr]
-    ax[1, 0].plot(t, [np.nan if f["position_error"] is None else f["position_error"] for f in fr], ".-")
-    ax[1, 0].set_xlabel("time (s)"); ax[1, 0].set_ylabel("position error (m)")
-    ax[1, 1].plot(t, [np.nan if f["yaw_error_deg"] is None else f["yaw_error_deg"] for f in fr], ".-")
-    ax[1, 1].set_xlabel("time (s)"); ax[1, 1].set_ylabel("yaw error (deg)")
-    fig.suptitle(f"AprilTag localization: availability {s['availability']:.0%}")
+    bars = lambda rows: {"centre": [(r["lo"] + r["hi"]) / 2 for r in rows],  # noqa: E731
+                         "rate": [r["detection_rate"] for r in rows], "width": [r["hi"] - r["lo"] for r in rows]}
+    nan = lambda v: np.nan if v is None else v  # noqa: E731
+    return {"rate_vs_distance": bars(s["rate_vs_distance"]), "rate_vs_angle": bars(s["rate_vs_angle"]),
+            "t": [f["t"] for f in fr], "position_error": [nan(f["position_error"]) for f in fr],
+            "yaw_error_deg": [nan(f["yaw_error_deg"]) for f in fr], "availability": s["availability"]}
+
+
+def plot_figure(series: dict):
+    """Detection rate bars (top) and pose errors over time (bottom) as a matplotlib Figure."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 7))
+    ax = fig.subplots(2, 2)
+    for a, key, label in ((ax[0, 0], "rate_vs_distance", "distance (m)"),
+                          (ax[0, 1], "rate_vs_angle", "viewing angle (deg)")):
+        bars = series[key]
+        if bars["centre"]:
+            a.bar(bars["centre"], bars["rate"], width=[0.9 * w for w in bars["width"]])
+        a.set_xlabel(label)
+        a.set_ylabel("detection rate")
+        a.set_ylim(0, 1.05)
+    for a, key, label in ((ax[1, 0], "position_error", "position error (m)"),
+                          (ax[1, 1], "yaw_error_deg", "yaw error (deg)")):
+        a.plot(series["t"], series[key], ".-")
+        a.set_xlabel("time (s)")
+        a.set_ylabel(label)
+    fig.suptitle(f"AprilTag localization: availability {series['availability']:.0%}")
     fig.tight_layout()
-    with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=100)
-    plt.close(fig)
+    return fig
+
+
+def plot(result: dict, path) -> dict:
+    """Write the localization chart as PNG; returns the series it plots."""
+    from ghsplat_jax.io_utils import save_figure
+
+    series = plot_series(result)
+    save_figure(plot_figure(series), path, dpi=100)
+    return series

@@ -11,11 +11,11 @@ rosbag2 bags are directories: `run.mcap` names the bag `run/` holding `run/run.m
 
 from __future__ import annotations
 
+import contextlib
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
+from ghsplat_jax.io_utils import atomic_path
 from ghsplat_jax.sim import messages
 
 
@@ -41,7 +41,6 @@ class BagRecorder:
         self.path = bag_dir(path)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path}: already exists (pass overwrite to replace it)")
-        self.overwrite = overwrite
         # Metadata v8 writes QoS profiles as a YAML string, the form Humble's rosbag2 reads;
         # Iron and Jazzy read it too (v9, a YAML list, is Jazzy-only).
         self.version = version
@@ -52,10 +51,9 @@ class BagRecorder:
     def __enter__(self) -> "BagRecorder":
         from rosbags.rosbag2 import StoragePlugin, Writer
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
-        self._tmp = self._tmpdir / self.path.name  # the bag's files take the directory's name
-        self._writer = Writer(self._tmp, version=self.version, storage_plugin=StoragePlugin.MCAP)
+        self._output = contextlib.ExitStack()
+        tmp = self._output.enter_context(atomic_path(self.path))  # same name: the bag's files take it
+        self._writer = Writer(tmp, version=self.version, storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
         return self
 
@@ -71,12 +69,8 @@ class BagRecorder:
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             self._writer.close()
-            if exc_type is None:
-                if self.path.exists() and self.overwrite:
-                    shutil.rmtree(self.path) if self.path.is_dir() else self.path.unlink()
-                os.replace(self._tmp, self.path)
         finally:
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._output.__exit__(exc_type, exc, tb)  # renamed into place, or discarded on an error
 
 
 def read_bag(path: str | os.PathLike) -> dict[str, list[tuple[int, object]]]:

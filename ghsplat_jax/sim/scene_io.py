@@ -48,7 +48,7 @@ def load_scene(path: str | os.PathLike, tags_path: str | os.PathLike | None = No
     before this succeeds."""
     import jax
 
-    from ghsplat_jax.scene.ply import PlyError, load_ply
+    from ghsplat_jax.data.ply import PlyError, load_ply
     from ghsplat_jax.scene.tags import load_tags
 
     path = Path(path)

@@ -159,6 +159,35 @@ def load_waypoints(path: str | os.PathLike, speed: float = 0.5) -> Trajectory:
         raise ValueError(f"{path}: bad waypoint file ({exc})") from None
 
 
+def is_twist_file(path: str | os.PathLike) -> bool:
+    """A .csv whose header has v and w columns holds velocity commands, not waypoints."""
+    path = Path(path)
+    if path.suffix.lower() != ".csv":
+        return False
+    with open(path, newline="") as fh:
+        header = {h.strip() for h in (next(csv.reader(fh), None) or [])}
+    return {"v", "w"} <= header
+
+
+def load_twist(path: str | os.PathLike, dt: float = 0.1, max_speed: float = np.inf,
+               max_yaw_rate: float = np.inf) -> Trajectory:
+    """Velocity commands (CSV v,w[,dt]; `dt` when the file has none), clamped to the
+    robot's limits and integrated as a differential drive."""
+    path = Path(path)
+    try:
+        with open(path, newline="") as fh:
+            rows = [{k.strip(): float(v) for k, v in r.items() if k} for r in csv.DictReader(fh)]
+        v = np.array([r["v"] for r in rows])
+        w = np.array([r["w"] for r in rows])
+        dts = {r.get("dt", dt) for r in rows}
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: bad velocity command file ({exc})") from None
+    if len(dts) != 1:
+        raise ValueError(f"{path}: velocity commands need one constant dt")
+    v, w = clamp_twist(v, w, max_speed, max_yaw_rate)
+    return integrate_twist(v, w, dts.pop())
+
+
 # ------------------------------------------------------------------------------- aisles
 
 @dataclasses.dataclass(frozen=True)

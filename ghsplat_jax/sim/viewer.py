@@ -9,25 +9,23 @@ from __future__ import annotations
 
 import numpy as np
 
+from ghsplat_jax.core import quaternions
 from ghsplat_jax.sim import frames
 
 
 def _wxyz(T: np.ndarray) -> np.ndarray:
-    q = frames.quat_xyzw(T)
-    return np.array([q[3], q[0], q[1], q[2]])
+    """viser's w-x-y-z orientation of a pose."""
+    return quaternions.from_rotation_matrix(np.asarray(T)[:3, :3])
 
 
 def surfel_splats(surfels, max_count: int = 200_000, seed: int = 0) -> dict:
     """centers, covariances (flat: third axis 1 mm), rgbs, opacities for viser, subsampled."""
     import jax
 
-    from ghsplat_jax.core import quaternions
-
     s = jax.tree_util.tree_map(np.asarray, surfels)
     n = s.means.shape[0]
     idx = np.sort(np.random.default_rng(seed).choice(n, max_count, replace=False)) if n > max_count else np.arange(n)
-    q, _ = quaternions.safe_normalize(s.quats[idx])
-    R = np.asarray(quaternions.to_rotation_matrix(q))
+    R = quaternions.to_rotation_matrix_np(s.quats[idx])
     scales = np.exp(np.c_[s.log_scales[idx], np.full(len(idx), np.log(1e-3))])
     cov = np.einsum("nij,nj,nkj->nik", R, scales ** 2, R)
     rgb = np.clip(s.sh_dc[idx] * 0.28209479177387814 + 0.5, 0, 1)

@@ -98,6 +98,10 @@ _SECTION_TYPES = {"layout": LayoutConfig, "plant": PlantConfig, "ground": Ground
                   "structure": StructureConfig, "tags": TagConfig, "render": RenderConfig}
 
 
+# train/config.py has a _coerce of its own (TrainConfig: flat fields, ConfigError, ints from
+# whole floats, n-tuples). Merging them: one `coerce(value, default, where, error=ValueError)`
+# in a shared low module (e.g. ghsplat_jax/config_values.py), with this one's [min, max] pairs
+# as a tuple case of length 2 and train's int-from-whole-float rule as an option.
 def _coerce(value, default, where: str):
     """Check `value` against the type of `default` (int, float, bool, str, 2-tuple)."""
     if isinstance(default, bool):
@@ -203,24 +207,9 @@ def load_config(path: str | os.PathLike) -> SceneConfig:
     return config_from_dict(data, str(path))
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {value!r} as TOML")
-
-
 def config_to_toml(cfg: SceneConfig) -> str:
     """The full resolved config as TOML text (round-trips through load_config)."""
-    lines = ["# Procedural greenhouse scene (ghsplat synth); every value resolved.",
-             f"seed = {cfg.seed}"]
-    for name in _SECTION_TYPES:
-        lines += ["", f"[{name}]"]
-        section = getattr(cfg, name)
-        lines += [f"{f.name} = {_toml_value(getattr(section, f.name))}" for f in dataclasses.fields(section)]
-    return "\n".join(lines) + "\n"
+    import tomli_w
+
+    table = {"seed": cfg.seed} | {name: dataclasses.asdict(getattr(cfg, name)) for name in _SECTION_TYPES}
+    return "# Procedural greenhouse scene (ghsplat synth); every value resolved.\n" + tomli_w.dumps(table)

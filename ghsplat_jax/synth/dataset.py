@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.data.images import write_image
 from ghsplat_jax.io_utils import atomic_write, write_json
 from ghsplat_jax.scene.tags import save_tags
 from ghsplat_jax.synth.config import config_to_toml
@@ -32,51 +33,6 @@ from ghsplat_jax.synth.render import albedo, camera_arrays, render_view, trace
 from ghsplat_jax.synth.scene import CLASSES, Scene
 
 OUTPUT_DIRS = ("images", "depth", "normals", "masks", "sparse")
-
-
-def write_image(path: str | os.PathLike, array: np.ndarray) -> Path:
-    """Write an image with OpenImageIO (format from the extension), atomically."""
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    array = np.ascontiguousarray(array)
-    if array.ndim == 2:
-        array = array[..., None]
-    formats = {np.dtype(np.uint8): oiio.UINT8, np.dtype(np.uint16): oiio.UINT16, np.dtype(np.float32): oiio.FLOAT}
-    if array.dtype not in formats:
-        raise TypeError(f"{path}: unsupported image dtype {array.dtype}")
-    if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
-        raise ValueError(f"{path}: refusing to write non-finite values")
-    height, width, channels = array.shape
-    spec = oiio.ImageSpec(width, height, channels, formats[array.dtype])
-    if channels == 1 and array.dtype.kind == "f":
-        spec.channelnames = ("Z",)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None:
-        raise OSError(f"{path}: OpenImageIO cannot write this format ({oiio.geterror()})")
-    try:
-        if not (out.open(str(tmp), spec) and out.write_image(array)):
-            raise OSError(f"{path}: OpenImageIO write failed ({out.geterror()})")
-        out.close()
-        os.replace(tmp, path)
-    except BaseException:
-        out.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read an image written by write_image (native dtype; (H, W) for one channel)."""
-    import OpenImageIO as oiio
-
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise OSError(f"{path}: {buf.geterror()}")
-    pixels = buf.get_pixels(buf.spec().format)
-    return pixels[..., 0] if pixels.shape[-1] == 1 else pixels
 
 
 def qvec_tvec(camera) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +198,7 @@ def write_dataset(scene: Scene, cameras, out_dir: str | os.PathLike, *, n_points
     for cam, name in tqdm(list(zip(cameras, names)), disable=not progress, desc="render"):
         stem = Path(name).stem
         views = render_view(scene, cam, **render_kwargs)
-        write_image(out / "images" / name, np.clip(views["rgb"] * 255 + 0.5, 0, 255).astype(np.uint8))
+        write_image(out / "images" / name, views["rgb"])  # floats in [0, 1] -> 8-bit
         write_image(out / "depth" / f"{stem}.exr", views["depth"])
         write_image(out / "normals" / f"{stem}.exr", views["normal"])
         write_image(out / "masks" / f"{stem}.png", views["instance"].astype(np.uint16))

@@ -1,5 +1,5 @@
 """2DGS training: config, losses, optimiser groups, densification on a fixed-capacity pool,
-the jitted step and the training loop.
+the jitted step, the training loop and the run folder (run_dir.py).
 
     from ghsplat_jax.train import TrainConfig, train
     result = train(TrainConfig(data="llff_fern", downscale=8), "runs/fern")

@@ -12,8 +12,6 @@ import numpy as np
 
 from ghsplat_jax.io_utils import atomic_write
 
-CHECKPOINT_NAME = "checkpoint.npz"
-
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be written or restored; the message names the file."""

@@ -4,7 +4,6 @@ ring of cameras, returned as a Dataset (no files) or written as a transforms.jso
 from __future__ import annotations
 
 import functools
-import json
 import math
 from pathlib import Path
 
@@ -42,14 +41,14 @@ def synthetic_dataset(num_views: int = 8, width: int = 48, height: int = 32, num
                       background=(0.0, 0.0, 0.0), test_every: int = 4, num_points: int = 300):
     """A Dataset of rendered views; every `test_every`-th view is a test view; `points` are
     samples on the true surfels (a stand-in for SfM points) with their colours."""
-    import ghsplat_jax as gs
     from ghsplat_jax.data import Dataset, View
+    from ghsplat_jax.raster import RasterConfig, render
 
     scene = random_scene(num_surfels, seed)
-    cfg = gs.RasterConfig(background=tuple(background))
+    cfg = RasterConfig(background=tuple(background))
     views = []
     for i, cam in enumerate(ring_cameras(num_views, width, height, seed=seed)):
-        out = gs.render(scene, cam, cfg)
+        out = render(scene, cam, cfg)
         views.append(View(f"view_{i:03d}", cam, np.asarray(out.rgb, np.float32), None))
     test = [v for i, v in enumerate(views) if i % test_every == 0]
     train = [v for i, v in enumerate(views) if i % test_every != 0]
@@ -71,6 +70,7 @@ def synthetic_dataset(num_views: int = 8, width: int = 48, height: int = 32, num
 def write_transforms(dataset, folder) -> Path:
     """Write a dataset's views as a NeRF-synthetic folder (transforms_{train,test}.json + PNGs)."""
     from ghsplat_jax.data.images import write_image
+    from ghsplat_jax.io_utils import write_json
 
     folder = Path(folder)
     for split, views in (("train", dataset.train), ("test", dataset.test)):
@@ -84,7 +84,7 @@ def write_transforms(dataset, folder) -> Path:
             frames.append({"file_path": f"./{split}/{v.name}", "transform_matrix": c2w.tolist()})
         K = np.asarray(views[0].camera.K)
         angle = 2 * math.atan(0.5 * views[0].camera.width / float(K[0, 0]))
-        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+        write_json(folder / f"transforms_{split}.json", {"camera_angle_x": angle, "frames": frames})
     return folder
 
 

@@ -24,15 +24,12 @@ import numpy as np
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import densify, optim
 from ghsplat_jax.train.config import TrainConfig, save_config
-from ghsplat_jax.train.state import (TrainState, empty_params, grow, initial_surfels, new_state, pad_params,
-                                     random_init_box)
+from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, load_run_checkpoint,
+                                       load_training_data, peak_rss_mb)
+from ghsplat_jax.train.state import TrainState, grow, initial_surfels, new_state, pad_params, random_init_box
 from ghsplat_jax.train.step import make_train_step
 
 log = logging.getLogger("ghsplat.train")
-
-STATS_NAME = "stats.jsonl"
-PLY_NAME = "point_cloud.ply"
-CONFIG_NAME = "config.toml"
 
 
 class TrainingDivergedError(RuntimeError):
@@ -55,25 +52,6 @@ class TrainResult:
     @property
     def num_surfels(self) -> int:
         return int(np.sum(np.asarray(self.state.active)))
-
-
-def resolve_data_path(data: str) -> Path:
-    """An existing path as given, else the same name under the shared datasets root."""
-    from ghsplat_jax.paths import datasets_root
-
-    p = Path(data).expanduser()
-    if p.exists() or p.is_absolute():
-        return p
-    return datasets_root() / data
-
-
-def load_training_data(config: TrainConfig):
-    from ghsplat_jax.data import load_dataset
-
-    if not config.data:
-        raise ValueError("no dataset given: set --data (or `data` in the config)")
-    return load_dataset(resolve_data_path(config.data), downscale=config.downscale, background=config.raster.background,
-                        split="auto", test_every=config.test_every, max_views=config.max_views or None)
 
 
 def view_order(seed: int, step: int, num_views: int) -> int:
@@ -152,9 +130,10 @@ class _Session:
         self.count_fn = densify.count_candidates_jit
         self.render_fn = render_fn
         self.rollbacks = 0
+        self.consecutive = 0  # non-finite steps in a row
         self.prior_seconds = 0.0
         self.prior_peak_rss_mb = 0.0  # training processes before a resume
-        path = out_dir / ckpt.CHECKPOINT_NAME
+        path = out_dir / CHECKPOINT_NAME
         if resume and path.exists():
             self._restore(path)
         else:
@@ -204,14 +183,12 @@ class _Session:
         log.info("resumed from %s at step %d", path, int(self.state.step))
 
     def save(self, seconds: float):
-        from ghsplat_jax.eval.evaluate import peak_rss_mb
-
         s = self.state
         extra = dict(step=int(s.step), capacity=s.capacity, sh_degree=s.params.sh_degree,
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
                      initial_count=self.initial_count, max_surfels=self.max_surfels,
                      peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb), config=self.config.to_dict())
-        ckpt.save_checkpoint(self.out / ckpt.CHECKPOINT_NAME, s, extra)
+        ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra)
 
     # -- one iteration ------------------------------------------------------------------
     def step(self, step: int) -> dict:
@@ -290,14 +267,6 @@ class _Session:
         self.state = grow(self.state, new_cap)
 
 
-def load_run_checkpoint(path: Path, optimizers: dict) -> tuple[TrainState, dict]:
-    """The training state and metadata of a run's checkpoint (the pool size from the file)."""
-    meta = ckpt.read_meta(path)
-    template = new_state(empty_params(meta["capacity"], meta["sh_degree"]), np.zeros(meta["capacity"], bool),
-                         optimizers)
-    return ckpt.load_checkpoint(path, template)
-
-
 def _truncate_stats(path: Path, last_step: int) -> None:
     from ghsplat_jax.io_utils import atomic_write
 
@@ -345,7 +314,6 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     dataset = dataset if dataset is not None else load_training_data(config)
     session = _Session(config, out, dataset, resume, render_fn)
     save_config(config, out / CONFIG_NAME)
-    session.consecutive = 0
     start = int(session.state.step)
     t0 = time.perf_counter()
     seconds = lambda: session.prior_seconds + time.perf_counter() - t0  # noqa: E731
@@ -381,7 +349,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
             stats.flush()
             session.save(seconds())
             log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
-                        out / ckpt.CHECKPOINT_NAME)
+                        out / CHECKPOINT_NAME)
             raise
         finally:
             stats.close()
@@ -390,7 +358,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     session.save(total)
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count)
     if step >= config.steps:
-        from ghsplat_jax.scene.ply import save_ply
+        from ghsplat_jax.data.ply import save_ply
 
         save_ply(result.surfels, out / PLY_NAME)
     return result

@@ -1,4 +1,5 @@
-"""`ghsplat train`: train 2DGS surfels on a dataset folder, then evaluate the run."""
+"""`ghsplat train`: train 2DGS surfels on a dataset folder, then evaluate the run (a command
+of its own, above train/ and eval/, because it uses both)."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def resolve_config(args):
     from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides, load_config
-    from ghsplat_jax.train.trainer import CONFIG_NAME
+    from ghsplat_jax.train.run_dir import CONFIG_NAME
 
     out = Path(args.out)
     config = TrainConfig()
@@ -62,28 +63,15 @@ def resolve_config(args):
     return apply_overrides(config, overrides, "command line")
 
 
-def run(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True, until: int | None = None) -> dict:
-    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
-    or when stopped early by `until`)."""
-    from ghsplat_jax.train.trainer import load_training_data, train
-
-    dataset = dataset if dataset is not None else load_training_data(config)
-    result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
-    if not evaluate or result.steps < config.resolved().steps:
-        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
-    from ghsplat_jax.eval.evaluate import evaluate as evaluate_fn
-
-    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
-
-
 def main(args) -> int:
-    from ghsplat_jax.train.config import ConfigError
-    from ghsplat_jax.train.trainer import TrainingDivergedError
+    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.train import ConfigError, TrainingDivergedError
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         config = resolve_config(args)
-        metrics = run(config, args.out, resume=args.resume, evaluate=not args.no_eval, until=args.until)
+        metrics = train_and_evaluate(config, args.out, resume=args.resume, evaluate=not args.no_eval,
+                                     until=args.until)
     except (ConfigError, TrainingDivergedError, FileNotFoundError) as exc:
         print(f"ghsplat train: {exc}", file=sys.stderr)
         return 2

@@ -143,7 +143,7 @@ def _surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.nd
     dropped = np.argmin(log_scales3, axis=1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[dropped]
     scales = np.take_along_axis(log_scales3, keep, axis=1)
-    product = np.asarray(quaternions.multiply(quats, _TO_NORMAL[dropped]))
+    product = quaternions.multiply_np(quats, _TO_NORMAL[dropped])
     return scales.astype(np.float32), product.astype(np.float32)
 
 

@@ -1,0 +1,163 @@
+"""The `ghsplat` commands without a test file of their own, run for real on tiny inputs, their
+outputs checked by value: render, export, bench and the quick demo (`ghsplat synth` is in
+test_synth_dataset.py, train / eval / run in test_train_cli.py, compose in
+test_scene_compose.py, simulate in test_sim_command.py, localize in test_sim_localize.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import ghsplat_jax as gs
+from ghsplat_jax import cli
+from ghsplat_jax.core.quaternions import from_euler_xyz
+from ghsplat_jax.data.images import read_image, read_pixels
+from ghsplat_jax.train.config import TrainConfig, save_config
+from ghsplat_jax.train.synthetic import cached_synthetic_dataset, random_scene, write_transforms
+
+W, H = 32, 24
+DATA = dict(num_views=6, width=W, height=H, num_surfels=40, test_every=3, num_points=200)
+
+
+def ghsplat(*argv) -> subprocess.CompletedProcess:
+    """The command in its own process, as a user runs it (the worktree's package: PYTHONPATH is kept)."""
+    return subprocess.run([sys.executable, "-m", "ghsplat_jax.cli", *map(str, argv)], capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A transforms.json folder rendered from random surfels, and those surfels as a PLY."""
+    root = tmp_path_factory.mktemp("scene")
+    data = write_transforms(cached_synthetic_dataset(**DATA), root / "data")
+    ply = gs.save_ply(random_scene(DATA["num_surfels"], seed=0), root / "scene.ply")
+    return data, ply
+
+
+def test_render_reproduces_a_datasets_views(scene, tmp_path):
+    data, ply = scene
+    assert cli.main(["render", str(ply), "--data", str(data), "--split", "test", "--out", str(tmp_path)]) == 0
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == sorted(f"view_{i:03d}_{k}" for i in (0, 3) for k in
+                           ("rgb.png", "alpha.png", "depth.exr", "depth.png", "normal.png"))
+    for i in (0, 3):  # the PLY holds the surfels the dataset was rendered from
+        rgb, _ = read_image(tmp_path / f"view_{i:03d}_rgb.png")
+        truth, _ = read_image(data / "test" / f"view_{i:03d}.png")
+        assert rgb.shape == (H, W, 3) and np.abs(rgb - truth).max() <= 1.5 / 255
+        depth, alpha = read_pixels(tmp_path / f"view_{i:03d}_depth.exr"), read_image(tmp_path / f"view_{i:03d}_alpha.png")[0]
+        assert depth.shape == (H, W) and depth.dtype == np.float32
+        covered = alpha[..., 0] > 0.5
+        assert covered.any() and np.all((depth[covered] > 2.0) & (depth[covered] < 5.0))  # cameras at 3.5 m
+
+
+def test_render_from_a_look_at_camera_measures_depth_and_colour(tmp_path):
+    """One large surfel facing the camera 3 m away: centre depth 3, its colour, opaque."""
+    quat = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0]  # normal +z turned to -y, toward the camera
+    s = gs.make_surfels([[0.0, 0.0, 0.0]], [quat], [[0.0, 0.0]], [8.0], [(np.array([0.8, 0.3, 0.1]) - 0.5) / 0.28209479])
+    ply = gs.save_ply(s, tmp_path / "one.ply")
+    out = tmp_path / "out"
+    assert cli.main(["render", str(ply), "--out", str(out), "--eye", "0", "-3", "0", "--size", "32x24",
+                     "--background", "0", "0", "1"]) == 0
+    rgb, _ = read_image(out / "view_rgb.png")
+    depth = read_pixels(out / "view_depth.exr")
+    alpha, _ = read_image(out / "view_alpha.png")
+    normal, _ = read_image(out / "view_normal.png")
+    c = (H // 2, W // 2)
+    assert depth[c] == pytest.approx(3.0, abs=1e-3) and alpha[c][0] == pytest.approx(0.99, abs=2 / 255)
+    np.testing.assert_allclose(rgb[c], 0.99 * np.array([0.8, 0.3, 0.1]) + 0.01 * np.array([0, 0, 1]), atol=2 / 255)
+    np.testing.assert_allclose(normal[c], (0.99 * np.array([0, -1, 0]) + 0.99) / 2, atol=2 / 255)  # facing -y
+
+
+def test_export_rotates_positions_frames_and_colours_together(tmp_path):
+    """`ghsplat export --rotate --translate`: the moved scene seen from the moved camera renders
+    the same image (view-dependent colour included: the SH bands are rotated too)."""
+    rng = np.random.default_rng(5)
+    n = 60
+    s = gs.make_surfels(rng.uniform(-0.6, 0.6, (n, 3)), rng.normal(size=(n, 4)), np.log(rng.uniform(0.05, 0.2, (n, 2))),
+                        np.full(n, 3.0), rng.normal(0, 0.5, (n, 3)), rng.normal(0, 0.4, (n, 3, 3)), sh_degree=1)
+    gs.save_ply(s, tmp_path / "in.ply")
+    assert cli.main(["export", str(tmp_path / "in.ply"), "--out", str(tmp_path / "out.ply"), "--rotate", "0", "0",
+                     "90", "--translate", "1", "2", "0.5", "--stats-out", str(tmp_path / "stats.json")]) == 0
+    moved = gs.load_ply(tmp_path / "out.ply")
+    R, t = from_euler_xyz([0, 0, 90], degrees=True), np.array([1.0, 2.0, 0.5])
+    np.testing.assert_allclose(moved.means, np.asarray(s.means) @ R.T + t, atol=1e-5)
+    assert json.loads((tmp_path / "stats.json").read_text())["count"] == n
+    eye, target = np.array([0.5, -3.0, 1.0]), np.zeros(3)
+    cfg = gs.RasterConfig(background=(0.0, 0.0, 0.0))
+    before = gs.render(s, gs.Camera(gs.intrinsics(W, H, 60), gs.look_at(eye, target), W, H), cfg)
+    after = gs.render(moved, gs.Camera(gs.intrinsics(W, H, 60), gs.look_at(R @ eye + t, R @ target + t), W, H), cfg)
+    assert float(np.max(before.alpha)) > 0.9
+    np.testing.assert_allclose(np.asarray(after.rgb), np.asarray(before.rgb), atol=2e-3)
+
+
+@pytest.fixture(scope="module")
+def finished_run(scene, tmp_path_factory):
+    """A finished run folder as the trainer leaves it: config.toml and point_cloud.ply."""
+    data, ply = scene
+    run = tmp_path_factory.mktemp("run")
+    save_config(TrainConfig(data=str(data), test_every=3), run / "config.toml")
+    (run / "point_cloud.ply").write_bytes(ply.read_bytes())
+    return run
+
+
+def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
+    """raster_ablation imports its sibling raster_speed: `ghsplat bench` must put benchmarks/ on the path."""
+    proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
+                   "--tiles", "8", "--chunks", "16", "--results", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads((tmp_path / "raster_ablation.json").read_text())
+    assert result["num_surfels"] == DATA["num_surfels"] and result["image_size"] == [W, H]
+    assert result["views"] == ["test/view_000.png"] and result["run"] == str(finished_run)
+    rows = result["rows"]
+    assert [(r["tile_size"], r["chunk_size"], r["backward"]) for r in rows] == [(8, 16, "custom_vjp"),
+                                                                               (8, 16, "autodiff")]
+    assert rows[0]["max_abs_diff_vs_default"] == 0.0 and rows[1]["max_abs_diff_vs_default"] < 1e-5
+    assert rows[0]["pairs"] == rows[1]["pairs"] > 0 and rows[0]["pixel_evals"] == rows[0]["pairs"] * 64
+    assert all(r["forward_s"] > 0 and r["forward_backward_s"] > 0 for r in rows)
+    assert read_pixels(tmp_path / "raster_ablation.png").ndim == 3
+
+
+def test_bench_outside_a_checkout_says_so(monkeypatch, tmp_path, capsys):
+    from ghsplat_jax.commands import bench
+
+    monkeypatch.setattr(bench, "BENCHMARKS", tmp_path / "site-packages" / "benchmarks")
+    assert cli.main(["bench", "raster_speed"]) == 2
+    assert "scripts of the source checkout" in capsys.readouterr().err
+    monkeypatch.undo()  # the checkout's benchmarks/ again
+    assert cli.main(["bench", "no_such_benchmark"]) == 2
+    err = capsys.readouterr().err
+    assert "no benchmark" in err and "raster_ablation" in err and "raster_speed" in err
+
+
+# `ghsplat demo --quick` took 140 s here (2 shared CPU cores): over the default suite's
+# budget of about 90 s per test, so it runs only when asked for.
+@pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("GHSPLAT_TEST_DEMO"),
+                    reason="ghsplat demo --quick takes over two minutes; set GHSPLAT_TEST_DEMO=1 to run it")
+def test_quick_demo_writes_every_stage(tmp_path):
+    from ghsplat_jax.scene.tags import load_tags
+    from ghsplat_jax.sim.recorder import read_bag
+    from ghsplat_jax.train import run_dir
+
+    out = tmp_path / "demo"
+    proc = ghsplat("demo", "--quick", "--out", out)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    metrics = run_dir.read_metrics(out / "run")
+    assert metrics["steps"] == 200 and metrics["test"]["num_views"] > 0 and metrics["test"]["psnr"] > 10
+    assert gs.load_ply(out / "run" / run_dir.PLY_NAME).num == metrics["num_gaussians"]
+    assert len(read_pixels(out / "row" / "images" / "00000.png")) == 96  # 128x96 photos
+    tags = load_tags(out / "greenhouse.tags.json")[1]
+    assert sorted(t.id for t in tags) == [0, 1, 2, 3]
+    np.testing.assert_allclose([t.world_from_tag[2, 3] for t in tags], 0.45)  # the layout's marker height
+    bag = read_bag(out / "sim.mcap")
+    renders = [m for _, m in bag["/render"]]
+    assert 0 < len(renders) <= 4 and {(m.width, m.height) for m in renders} == {(128, 96)}
+    loc = json.loads((out / "localize" / "localization.json").read_text())
+    assert loc["summary"]["frames"] == 6
+    assert read_pixels(out / "views" / "greenhouse_rgb.png").shape == (320, 480, 3)
+    report = (out / "report.md").read_text()
+    assert f"| surfels | {metrics['num_gaussians']} |" in report and "| training steps | 200 |" in report

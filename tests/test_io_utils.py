@@ -1,0 +1,35 @@
+"""Atomic writes: a reader sees the old output or the new one, and a failure leaves nothing behind."""
+
+from __future__ import annotations
+
+import pytest
+
+from ghsplat_jax.io_utils import atomic_path, atomic_write
+
+
+def test_atomic_write_replaces_a_file_only_on_success(tmp_path):
+    target = tmp_path / "a.txt"
+    with atomic_write(target, "w") as fh:
+        fh.write("one")
+    assert target.read_text() == "one" and (target.stat().st_mode & 0o777) != 0o600
+    with pytest.raises(RuntimeError):
+        with atomic_write(target, "w") as fh:
+            fh.write("half")
+            raise RuntimeError("crash")
+    assert target.read_text() == "one"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_atomic_path_writes_and_replaces_folders(tmp_path):
+    target = tmp_path / "model"
+    for n in (2, 1):
+        with atomic_path(target) as tmp:
+            assert tmp.name == "model" and not tmp.exists()
+            tmp.mkdir()
+            for i in range(n):
+                (tmp / f"{i}.bin").write_bytes(b"x")
+    assert sorted(p.name for p in target.iterdir()) == ["0.bin"]  # the old folder's files are gone
+    with pytest.raises(FileNotFoundError, match="no output"):
+        with atomic_path(tmp_path / "never"):
+            pass
+    assert [p.name for p in tmp_path.iterdir()] == ["model"]
