@@ -48,12 +48,13 @@ class Layout:
     num_kept: jax.Array       # () pairs whose tile the surfel's alpha can reach 1/255 in
 
 
-def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid):
-    """Inclusive tile rectangles (x0, y0, x1, y1) and pair counts per surfel."""
+def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid, tight: bool = True):
+    """Inclusive tile rectangles (x0, y0, x1, y1) and candidate pair counts per surfel, from the
+    opacity-aware box (tight) or the 3-sigma box."""
     ts = grid.tile_size
-    # Pixel centres j + 0.5 inside the opacity-aware box [bin_min, bin_max].
-    lo = jnp.ceil(p.bin_min - 0.5)
-    hi = jnp.floor(p.bin_max - 0.5)
+    # Pixel centres j + 0.5 inside the box.
+    lo = jnp.ceil((p.bin_min if tight else p.box_min) - 0.5)
+    hi = jnp.floor((p.bin_max if tight else p.box_max) - 0.5)
     size = jnp.array([width, height], jnp.float32)
     hits = p.visible & jnp.all((hi >= 0) & (lo <= size - 1) & (lo <= hi), axis=1)
     lo = jnp.clip(lo, 0, size - 1).astype(jnp.int32) // ts
@@ -74,9 +75,9 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
 
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
-              chunk_size: int, num_chunks: int) -> Layout:
+              chunk_size: int, num_chunks: int, tight: bool = True) -> Layout:
     n = p.depth.shape[0]
-    lo, hi, counts = tile_ranges(p, width, height, grid)
+    lo, hi, counts = tile_ranges(p, width, height, grid, tight)
     order = jnp.argsort(p.depth, stable=True)
     sorted_counts = counts[order]
     ends = jnp.cumsum(sorted_counts)
@@ -89,7 +90,9 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     local = slot - starts[owner]
     row_len = (hi[surfel, 0] - lo[surfel, 0] + 1)
     tile = (lo[surfel, 1] + local // row_len) * grid.tiles_x + lo[surfel, 0] + local % row_len
-    keep = (slot < num_pairs) & tile_touched(p, surfel, tile, grid)
+    keep = slot < num_pairs
+    if tight:
+        keep &= tile_touched(p, surfel, tile, grid)
     tile = jnp.where(keep, tile, grid.num_tiles)
     tile, pair_surfel = jax.lax.sort((tile, surfel), num_keys=1, is_stable=True)
 
@@ -138,9 +141,11 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGri
     return ~p.bounded[surfel] | in_disc | inside | on_edge
 
 
-def count_pairs(p: Projected, width: int, height: int, grid: TileGrid) -> tuple[jax.Array, jax.Array]:
-    """(total pairs, pairs of the fullest tile) from the tile rectangles via a 2D difference array."""
-    lo, hi, counts = tile_ranges(p, width, height, grid)
+def count_pairs(p: Projected, width: int, height: int, grid: TileGrid,
+                tight: bool = True) -> tuple[jax.Array, jax.Array]:
+    """(candidate pairs, candidates of the fullest tile) from the tile rectangles via a 2D
+    difference array (the buffer must hold every candidate; the exact test runs after)."""
+    lo, hi, counts = tile_ranges(p, width, height, grid, tight)
     hit = counts > 0
     diff = jnp.zeros((grid.tiles_y + 1, grid.tiles_x + 1), jnp.int32)
     one = hit.astype(jnp.int32)

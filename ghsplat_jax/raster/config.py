@@ -22,6 +22,8 @@ class RasterConfig:
     # 8-px tiles waste fewer pixel evaluations than 2DGS's 16, and a batch of 64 chunks keeps the
     # carried compositor's per-pixel planes in cache.
     tile_size: int = 8                     # 8, 16 or 32 pixel tiles
+    bounds: str = "tight"                  # "tight" (opacity-aware box and exact ellipse-tile test) or
+                                           # "box3" (the 3-sigma box, as 2DGS: the ablation)
     lowpass_filter: bool = True            # 2DGS screen-space filter rho = min(rho3, 2|x - c|^2)
     chunk_size: int = 16                   # surfels blended per vectorised step within a tile
     batch_chunks: int = 64                 # chunks evaluated together (cache footprint vs. loop overhead)
@@ -40,6 +42,8 @@ class RasterConfig:
             raise ValueError(f"tile_size must be 8, 16 or 32, got {self.tile_size}")
         if self.backward not in ("custom_vjp", "autodiff"):
             raise ValueError(f"backward must be 'custom_vjp' or 'autodiff', got {self.backward!r}")
+        if self.bounds not in ("tight", "box3"):
+            raise ValueError(f"bounds must be 'tight' or 'box3', got {self.bounds!r}")
         if self.compositor not in ("carried", "logspace"):
             raise ValueError(f"compositor must be 'carried' or 'logspace', got {self.compositor!r}")
         if self.backward == "autodiff" and self.compositor != "logspace":

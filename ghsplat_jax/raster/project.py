@@ -35,8 +35,8 @@ class Projected:
     box_max: jax.Array    # (N,2)
     bin_min: jax.Array    # (N,2) opacity-aware box: where alpha can reach 1/255 (binning)
     bin_max: jax.Array    # (N,2)
-    conic: jax.Array      # (N,6) that region's ellipse q(d) <= 0 in pixel offsets d from `center`
-    reach: jax.Array      # (N,) radius of the low-pass filter's disc around `center` in that region
+    conic: jax.Array      # (N,6) the ellipse where alpha >= 1/255: q(d) <= 0, d the offset from `center`
+    reach: jax.Array      # (N,) radius of the low-pass filter's disc around `center` where alpha >= 1/255
     bounded: jax.Array    # (N,) bool: the ellipse lies in front of the camera (else no tile test)
     visible: jax.Array    # (N,) bool: valid, in front of near, box on screen
     invalid: jax.Array    # (N,) bool: non-finite parameters or zero quaternion
@@ -81,18 +81,22 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     box_min = jnp.where(bounded[:, None], center - half, -big)
     box_max = jnp.where(bounded[:, None], center + half, big)
 
-    # Where alpha = opacity exp(-rho / 2) can reach 1/255: rho <= 2 ln(255 opacity), capped at the
-    # 3-sigma ellipse (the reference's extent). rho = min(rho3, rho2), so that region is the
-    # ellipse u^2 + v^2 <= cut2 joined with the filter's disc 2 |x - c|^2 <= cut2.
-    cut2 = jnp.clip(2.0 * jnp.log(jnp.maximum(255.0 * opacity, 1e-30)), 0.0, CUTOFF**2)
+    # Where alpha = opacity exp(-rho / 2) can reach 1/255: rho <= rho_max = 2 ln(255 opacity). As
+    # rho = min(rho3, rho2), that region is the ellipse u^2 + v^2 <= rho_max joined with the
+    # filter's disc 2 |x - c|^2 <= rho_max. Candidate tiles come from its box capped at the
+    # 3-sigma ellipse (the reference's extent); the tile test then drops a candidate only where
+    # alpha stays below 1/255 at every pixel, so the image equals the 3-sigma binning's.
+    rho_max = jnp.maximum(2.0 * jnp.log(jnp.maximum(255.0 * opacity, 1e-30)), 0.0)
+    cut2 = jnp.minimum(rho_max, CUTOFF**2)
     tight_center, tight_half, tight_bounded = _ellipse_box(M, cut2, depth)
     tight_half = jnp.maximum(tight_half, 0.5)
-    disc = jnp.sqrt(0.5 * cut2) if lowpass_filter else jnp.zeros_like(cut2)
-    faint = cut2 <= 0.0  # alpha < 1/255 everywhere: no pixel at all
-    bin_min = jnp.where(tight_bounded[:, None], jnp.minimum(tight_center - tight_half, center - disc[:, None]), -big)
-    bin_max = jnp.where(tight_bounded[:, None], jnp.maximum(tight_center + tight_half, center + disc[:, None]), big)
+    disc = (lambda r2: jnp.sqrt(0.5 * r2)) if lowpass_filter else (lambda r2: jnp.zeros_like(r2))
+    faint = rho_max <= 0.0  # alpha < 1/255 everywhere: no pixel at all
+    box_disc = disc(cut2)[:, None]
+    bin_min = jnp.where(tight_bounded[:, None], jnp.minimum(tight_center - tight_half, center - box_disc), -big)
+    bin_max = jnp.where(tight_bounded[:, None], jnp.maximum(tight_center + tight_half, center + box_disc), big)
     bin_min, bin_max = jnp.where(faint[:, None], big, bin_min), jnp.where(faint[:, None], -big, bin_max)
-    conic = _pixel_conic(M, cut2, center)
+    conic = _pixel_conic(M, rho_max, center)
 
     if means2d_probe is not None:
         # Shifts the projected centre column only; the filter centre keeps its value, so the
@@ -117,7 +121,7 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
         M=jnp.where(visible[:, None, None], M, jnp.eye(3)), center=zero_if_hidden(center),
         opacity=zero_if_hidden(opacity), color=zero_if_hidden(color), normal=zero_if_hidden(normal),
         depth=jnp.where(visible, depth, jnp.inf), box_min=box_min, box_max=box_max, bin_min=bin_min,
-        bin_max=bin_max, conic=conic, reach=disc, bounded=tight_bounded, visible=visible, invalid=invalid,
+        bin_max=bin_max, conic=conic, reach=disc(rho_max), bounded=tight_bounded, visible=visible, invalid=invalid,
         culled_near=culled_near)
 
 

@@ -107,7 +107,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
     st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
                           cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
-                               _num_chunks(capacity, grid, cfg))
+                               _num_chunks(capacity, grid, cfg), cfg.bounds == "tight")
     if cfg.backend == "dense":
         slots = tile_slots or min(s.means.shape[0], capacity)
         starts = jnp.cumsum(layout.tile_count) - layout.tile_count
@@ -145,7 +145,7 @@ def _count_pairs(s: Surfels, cam: Camera, cfg: RasterConfig) -> tuple[jax.Array,
     """Exact (total pairs, pairs in the fullest tile), without building the pair list."""
     grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
     p = project(s, cam, cfg.near, 0, cfg.lowpass_filter)
-    return binning.count_pairs(p, cam.width, cam.height, grid)
+    return binning.count_pairs(p, cam.width, cam.height, grid, cfg.bounds == "tight")
 
 
 count_pairs = jax.jit(_count_pairs, static_argnames=("cfg",))
@@ -182,7 +182,8 @@ def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
 
 def _binning_cfg(cfg: RasterConfig) -> RasterConfig:
     # Only the fields that change binning matter, so one compiled counter serves all variants.
-    return RasterConfig(near=cfg.near, far=cfg.far, tile_size=cfg.tile_size, lowpass_filter=cfg.lowpass_filter)
+    return RasterConfig(near=cfg.near, far=cfg.far, tile_size=cfg.tile_size, lowpass_filter=cfg.lowpass_filter,
+                        bounds=cfg.bounds)
 
 
 def default_capacity(num_surfels: int, cam: Camera, cfg: RasterConfig) -> int:
