@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ghsplat_jax as gs
+from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
 from ghsplat_jax.train.run_dir import load_run, load_training_data
@@ -50,28 +51,37 @@ def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
     grad = jax.jit(jax.grad(lambda s: jnp.mean(jnp.abs(render(s).rgb - image))))
     _, fwd_wall, fwd_cpu = timed(forward, surfels, repeats=repeats)
     _, both_wall, both_cpu = timed(grad, surfels, repeats=repeats)
-    return dict(pairs=pairs, forward_s=fwd_wall, forward_cpu_s=fwd_cpu, forward_backward_s=both_wall,
-                forward_backward_cpu_s=both_cpu, pixel_evals=pairs * cfg.tile_size**2), np.asarray(forward(surfels))
+    out = render(surfels)
+    kept, visible = int(out.stats.num_kept), max(int(out.stats.num_visible), 1)
+    # A tile saturates when every pixel's transmittance fell below 1e-4 (early termination's gain).
+    ts, a = cfg.tile_size, np.asarray(out.alpha)
+    h, w = -(-a.shape[0] // ts) * ts, -(-a.shape[1] // ts) * ts
+    tiles = np.pad(a, ((0, h - a.shape[0]), (0, w - a.shape[1])), constant_values=1.0).reshape(h // ts, ts, w // ts, ts)
+    return dict(pairs=pairs, kept_pairs=kept, pairs_per_visible_surfel=kept / visible,
+                pixel_evals_per_pixel=kept * ts**2 / a.size,
+                saturated_tile_fraction=float(np.mean(np.min(tiles, axis=(1, 3)) >= 1 - 1e-4)),
+                forward_s=fwd_wall, forward_cpu_s=fwd_cpu, forward_backward_s=both_wall,
+                forward_backward_cpu_s=both_cpu, pixel_evals=kept * ts**2), np.asarray(out.rgb)
+
+
+def _label(r: dict) -> str:
+    return f"{r['compositor']} {r['bounds']} {r['backward']}, tile {r['tile_size']}, chunk {r['chunk_size']}x{r['batch_chunks']}"
 
 
 def chart(rows: list[dict], title: str, path: Path) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    labels = [f"tile {r['tile_size']}, chunk {r['chunk_size']}, {r['backward']}" for r in rows]
+    fig = Figure(figsize=(9, 5))
+    ax = fig.add_subplot()
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r["forward_cpu_s"] for r in rows], 0.4, label="forward")
     ax.bar(x + 0.2, [r["forward_backward_cpu_s"] for r in rows], 0.4, label="forward + backward")
-    ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax.set_xticks(x, [_label(r) for r in rows], rotation=50, ha="right", fontsize=7)
     ax.set_ylabel("CPU seconds per view (median over views)")
     ax.set_title(title, fontsize=9)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv=None) -> int:
@@ -80,7 +90,7 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=3, help="test views to time (evenly spaced)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--tiles", default="8,16,32")
-    ap.add_argument("--chunks", default="16,32,64")
+    ap.add_argument("--chunks", default="16,32")
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
 
@@ -96,7 +106,10 @@ def main(argv=None) -> int:
     grid = [dataclasses.replace(base, tile_size=t, chunk_size=c)
             for t, c in itertools.product((int(v) for v in args.tiles.split(",")),
                                           (int(v) for v in args.chunks.split(",")))]
-    grid = [base] + [g for g in grid if g != base] + [dataclasses.replace(base, backward="autodiff")]
+    variants = [dict(batch_chunks=32), dict(batch_chunks=128), dict(bounds="box3"),
+                dict(compositor="logspace", bounds="box3", batch_chunks=16),
+                dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16)]
+    grid = [base] + [g for g in grid if g != base] + [dataclasses.replace(base, **v) for v in variants]
     reference = None
     rows = []
     for cfg in grid:
@@ -106,8 +119,8 @@ def main(argv=None) -> int:
             per_view.append(r)
             images.append(rgb)
         reference = images if reference is None else reference
-        row = dict(tile_size=cfg.tile_size, chunk_size=cfg.chunk_size, backward=cfg.backward,
-                   batch_chunks=cfg.batch_chunks, load_average=os.getloadavg()[0],
+        row = dict(compositor=cfg.compositor, bounds=cfg.bounds, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
+                   backward=cfg.backward, batch_chunks=cfg.batch_chunks, load_average=os.getloadavg()[0],
                    **{k: float(np.median([p[k] for p in per_view])) for k in per_view[0]})
         row["max_abs_diff_vs_default"] = float(max(np.max(np.abs(a - b)) for a, b in zip(images, reference)))
         rows.append(row)
@@ -118,8 +131,7 @@ def main(argv=None) -> int:
     result = {
         "run": str(run), "data": config.data, "step": step, "num_surfels": int(surfels.num),
         "image_size": [int(w), int(h)], "views": [v.name for v in views], "rows": rows,
-        "default": {k: default[k] for k in ("tile_size", "chunk_size", "backward")},
-        "fastest_forward_backward": {k: fastest[k] for k in ("tile_size", "chunk_size", "backward")},
+        "default": _label(default), "fastest_forward_backward": _label(fastest),
         "default_over_fastest_cpu": default["forward_backward_cpu_s"] / fastest["forward_backward_cpu_s"],
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
                     "device": str(jax.devices()[0])},
@@ -127,7 +139,7 @@ def main(argv=None) -> int:
     }
     out = Path(args.results)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "raster_ablation.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_json(out / "raster_ablation.json", result)
     chart(rows, f"{config.data} at step {step}: {surfels.num} surfels, {w}x{h}, {len(views)} test views",
           out / "raster_ablation.png")
     print(f"fastest fwd+bwd: {result['fastest_forward_backward']}; default is "

@@ -29,11 +29,14 @@ from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
 
 RESULTS = Path(__file__).parent / "results"
 VARIANTS = {
-    "tiled carried": gs.RasterConfig(),
-    "tiled logspace custom_vjp": gs.RasterConfig(compositor="logspace"),
-    "tiled logspace autodiff": gs.RasterConfig(compositor="logspace", backward="autodiff"),
-    "naive dense": gs.RasterConfig(backend="dense"),
+    "carried, tight bounds (default)": gs.RasterConfig(),
+    "carried, 3-sigma boxes": gs.RasterConfig(bounds="box3"),
+    "logspace, 3-sigma boxes (previous)": gs.RasterConfig(compositor="logspace", bounds="box3", batch_chunks=32),
+    "logspace autodiff, 3-sigma boxes": gs.RasterConfig(compositor="logspace", backward="autodiff", bounds="box3",
+                                                        batch_chunks=32),
+    "naive dense": gs.RasterConfig(backend="dense", tile_size=16, bounds="box3"),
 }
+DEFAULT, PREVIOUS, NAIVE = "carried, tight bounds (default)", "logspace, 3-sigma boxes (previous)", "naive dense"
 DENSE_MEMORY_LIMIT = 6e9  # bytes: the naive baseline is skipped above this predicted size
 
 
@@ -61,6 +64,13 @@ def timed(fn, *args, repeats: int):
     return compile_s, float(np.median(wall)), float(np.median(cpu))
 
 
+def exp_rate(n: int = 1 << 18, rounds: int = 20) -> float:
+    """Fused exp evaluations per second on cache-resident planes (this machine, now)."""
+    x = jnp.linspace(0.1, 2.0, n).reshape(-1, 64)
+    f = jax.jit(lambda x: jax.lax.fori_loop(0, rounds, lambda i, c: jnp.exp(-c) + x, x))
+    return n * rounds / timed(f, x, repeats=5)[1]
+
+
 def memory_bytes(fn, *args) -> int | None:
     try:
         m = fn.lower(*args).compile().memory_analysis()
@@ -73,18 +83,18 @@ def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[
     cam = gs.Camera(K=gs.intrinsics(width, height, 60), world_to_cam=gs.look_at([0, -3.0, 0.8], [0, 0, 0]),
                     width=width, height=height)
     s = typical_scene(n)
-    pairs, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(gs.RasterConfig())))
-    capacity = capacity_bucket(pairs)
-    slots = max(32, 1 << max(fullest - 1, 0).bit_length())
     target = jax.random.uniform(jax.random.PRNGKey(0), (height, width, 3))
     rows = []
     for name in variants:
         cfg = VARIANTS[name]
-        row = dict(variant=name, width=width, height=height, surfels=n, pairs=pairs, fullest_tile=fullest,
-                   capacity=capacity)
-        tiles = -(-width // 16) * -(-height // 16)
-        if cfg.backend == "dense" and tiles * slots * 256 * 4 * 12 > DENSE_MEMORY_LIMIT:
-            row["skipped"] = f"predicted dense block {tiles}x{slots}x256 exceeds memory"
+        pairs, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg)))
+        capacity = capacity_bucket(pairs)
+        slots = max(32, 1 << max(fullest - 1, 0).bit_length())
+        row = dict(variant=name, width=width, height=height, surfels=n, tile_size=cfg.tile_size, pairs=pairs,
+                   fullest_tile=fullest, capacity=capacity)
+        tiles = -(-width // cfg.tile_size) * -(-height // cfg.tile_size)
+        if cfg.backend == "dense" and tiles * slots * cfg.tile_size**2 * 4 * 12 > DENSE_MEMORY_LIMIT:
+            row["skipped"] = f"predicted dense block {tiles}x{slots}x{cfg.tile_size**2} exceeds memory"
             rows.append(row)
             print(row)
             continue
@@ -95,38 +105,40 @@ def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[
         row["backward_compile_s"], row["forward_backward_s"], row["forward_backward_cpu_s"] = timed(
             backward, s, repeats=repeats)
         row["load_average"] = os.getloadavg()[0]
+        row["kept_pairs"] = int(rasterize(s, cam, cfg, capacity, tile_slots=slots).stats.num_kept)
         row["forward_memory_bytes"] = memory_bytes(forward, s)
         row["forward_backward_memory_bytes"] = memory_bytes(backward, s)
-        # Work actually done: every pair against every pixel of its tile.
-        row["pair_pixel_evals"] = pairs * 256
-        row["forward_evals_per_s"] = pairs * 256 / row["forward_s"]
-        row["forward_evals_per_cpu_s"] = pairs * 256 / row["forward_cpu_s"]
+        # Work actually done: every composited pair against every pixel of its tile.
+        evals = row["kept_pairs"] * cfg.tile_size**2
+        row["pair_pixel_evals"] = evals
+        row["forward_evals_per_s"] = evals / row["forward_s"]
+        row["forward_backward_evals_per_s"] = evals / row["forward_backward_s"]
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     return rows
 
 
 def chart(rows, path: Path):
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ghsplat_jax.io_utils import save_figure
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig = Figure(figsize=(12, 4.5))
+    axes = fig.subplots(1, 2)
     for ax, key in zip(axes, ("forward_cpu_s", "forward_backward_cpu_s")):
         for name in VARIANTS:
-            pts = [(r["pairs"] * 256, r[key]) for r in rows if r["variant"] == name and key in r]
+            pts = [(r["width"] * r["height"] * r["surfels"], r[key]) for r in rows if r["variant"] == name and key in r]
             if pts:
                 x, y = zip(*sorted(pts))
                 ax.loglog(x, y, "o-", label=name)
-        ax.set_xlabel("pair-pixel evaluations (pairs x 256)")
+        ax.set_xlabel("image pixels x surfels")
         ax.set_ylabel("process CPU seconds (median)")
         ax.set_title(key.replace("_cpu_s", "").replace("_", "+"))
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        ax.legend(fontsize=8)
     fig.suptitle(f"2DGS rasterizer on {platform.processor() or platform.machine()} ({jax.devices()[0].platform})")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
 
 
 def main():
@@ -151,19 +163,22 @@ def main():
             rows += bench_case(width, height, n, args.repeats, args.variants if compare else args.variants[:1])
     summary = {}
     for r in rows:
-        if r["variant"] == "tiled custom_vjp" and "forward_s" in r:
-            base = next((b for b in rows if b["variant"] == "naive dense" and b["width"] == r["width"]
-                         and b["surfels"] == r["surfels"] and "forward_s" in b), None)
+        if r["variant"] != DEFAULT or "forward_s" not in r:
+            continue
+        case = f"{r['width']}x{r['height']}/{r['surfels']}"
+        for label, base_name in (("naive", NAIVE), ("previous", PREVIOUS)):
+            base = next((b for b in rows if b["variant"] == base_name and b["width"] == r["width"]
+                         and b["height"] == r["height"] and b["surfels"] == r["surfels"] and "forward_s" in b), None)
             if base:
-                summary[f"{r['width']}x{r['height']}/{r['surfels']}"] = {
-                    "forward_speedup_vs_naive": base["forward_s"] / r["forward_s"],
-                    "forward_backward_speedup_vs_naive": base["forward_backward_s"] / r["forward_backward_s"],
-                    "forward_cpu_speedup_vs_naive": base["forward_cpu_s"] / r["forward_cpu_s"],
-                    "forward_backward_cpu_speedup_vs_naive":
-                        base["forward_backward_cpu_s"] / r["forward_backward_cpu_s"]}
+                summary.setdefault(case, {}).update({
+                    f"forward_speedup_vs_{label}": base["forward_s"] / r["forward_s"],
+                    f"forward_backward_speedup_vs_{label}": base["forward_backward_s"] / r["forward_backward_s"],
+                    f"forward_cpu_speedup_vs_{label}": base["forward_cpu_s"] / r["forward_cpu_s"],
+                    f"forward_backward_cpu_speedup_vs_{label}":
+                        base["forward_backward_cpu_s"] / r["forward_backward_cpu_s"]})
     result = dict(machine=dict(platform=platform.platform(), processor=platform.processor(),
                                cpus=os.cpu_count(), device=str(jax.devices()[0]),
-                               jax=jax.__version__),
+                               jax=jax.__version__, exp_rate_per_s=exp_rate()),
                   rows=rows, speedups=summary)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

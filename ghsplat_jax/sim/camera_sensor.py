@@ -66,12 +66,14 @@ def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25) -> int:
     return capacity_bucket(int(needed * headroom))
 
 
-def sensor_config(raster_config, pair_capacity, background=(0.0, 0.0, 0.0)):
-    """The sensors' raster settings: a static pair capacity whose overflow is reported, not raised."""
+def sensor_config(raster_config, pair_capacity, background=(0.0, 0.0, 0.0), median: bool = False):
+    """The sensors' raster settings: a static pair capacity whose overflow is reported, not raised,
+    and the forward-only fast path: no distortion sums, the median depth only when it is read."""
     from ghsplat_jax.raster import RasterConfig
 
     cfg = raster_config or RasterConfig(near=0.2, background=tuple(background))
-    return dataclasses.replace(cfg, pair_capacity=pair_capacity, on_overflow="report")
+    return dataclasses.replace(cfg, pair_capacity=pair_capacity, on_overflow="report", distortion=False,
+                               median=median)
 
 
 def sensor_render_fn(render_fn, cfg):

@@ -207,7 +207,7 @@ class Lidar:
     def _config(self):
         from ghsplat_jax.sim.camera_sensor import sensor_config
 
-        return sensor_config(self._raster_config, self.pair_capacity)
+        return sensor_config(self._raster_config, self.pair_capacity, median=self.depth_mode == "median")
 
     def _build(self):
         import jax

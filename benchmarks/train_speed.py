@@ -1,0 +1,117 @@
+"""Seconds per training step in windows of the real 30k schedule, old rasterizer settings against new.
+
+    python benchmarks/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
+    python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
+
+Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
+from the same state and views, after a warm-up step that compiles; times are medians. The
+"previous" variant is the rasterizer as it trained before this change: the two-pass logspace
+compositor, 3-sigma boxes, every output computed, 16-chunk batches. The same process also measures
+the machine's fused exp rate, so throughputs can be read against it. Writes
+benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.train import trainer
+from ghsplat_jax.train.config import TrainConfig, load_config
+from ghsplat_jax.train.run_dir import load_training_data
+from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
+
+RESULTS = Path(__file__).parent / "results"
+SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
+          "lego": TrainConfig(data="nerf_synthetic_lego", downscale=2.0).replace(background=(1.0, 1.0, 1.0))}
+PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
+
+
+def time_steps(config: TrainConfig, dataset, checkpoint: Path | None, steps: int) -> dict:
+    """Median wall and CPU seconds of `steps` training steps from the checkpoint (or step 0)."""
+    session = trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
+    if checkpoint is not None:
+        session._restore(checkpoint)
+    start = int(session.state.step)
+    state0 = session.state
+    session.step(start)  # compile
+    session.state = state0
+    wall, cpu, pairs, kept = [], [], [], []
+    for k in range(steps):
+        t0, c0 = time.perf_counter(), time.process_time()
+        m = session.step(start + k)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        pairs.append(m["num_pairs"])
+    return dict(step=start, surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
+                pair_capacity=session.pair_capacity, candidate_pairs=float(np.median(pairs)),
+                seconds_per_step=float(np.median(wall)), cpu_seconds_per_step=float(np.median(cpu)),
+                load_average=os.getloadavg()[0])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="fern", choices=sorted(SCENES))
+    ap.add_argument("--config", help="a run's config.toml (overrides --scene)")
+    ap.add_argument("--checkpoint", help="start from this training checkpoint (else from initialisation)")
+    ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
+    ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
+    args = ap.parse_args(argv)
+    config = load_config(args.config) if args.config else SCENES[args.scene]
+    config = dataclasses.replace(config, progress=False, checkpoint_every=0)
+    dataset = load_training_data(config)
+    checkpoint = Path(args.checkpoint) if args.checkpoint else None
+    variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
+    rows = {}
+    for name, cfg in variants.items():
+        rows[name] = time_steps(cfg, dataset, checkpoint, args.steps)
+        print(name, rows[name], flush=True)
+    window = dict(rows=rows, speedup=rows["previous"]["seconds_per_step"] / rows["current"]["seconds_per_step"],
+                  cpu_speedup=rows["previous"]["cpu_seconds_per_step"] / rows["current"]["cpu_seconds_per_step"],
+                  exp_rate_per_s=exp_rate(), peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  image=[dataset.train[0].camera.width, dataset.train[0].camera.height], steps_timed=args.steps,
+                  previous_settings=PREVIOUS, current_settings=dataclasses.asdict(config.raster))
+    label = args.label or f"{Path(config.data).name}@{rows['current']['step']}"
+    path = RESULTS / "train_speed.json"
+    results = json.loads(path.read_text()) if path.is_file() else {}
+    results.setdefault("windows", {})[label] = window
+    results["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__)
+    write_json(path, results)
+    chart(results["windows"], RESULTS / "train_speed.png")
+    print(json.dumps({label: {k: window[k] for k in ("speedup", "cpu_speedup", "exp_rate_per_s")}}, indent=1))
+    return 0
+
+
+def chart(windows: dict, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    labels = list(windows)
+    x = np.arange(len(labels))
+    for i, name in enumerate(("previous", "current")):
+        ax.bar(x + (i - 0.5) * 0.38, [windows[k]["rows"][name]["seconds_per_step"] for k in labels], 0.38, label=name)
+    ax.set_xticks(x, [f"{k}\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels])
+    ax.set_ylabel("seconds per training step (median)")
+    ax.set_title("Training step on a 2-core CPU: previous vs current rasterizer")
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
