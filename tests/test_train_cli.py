@@ -11,6 +11,7 @@ import pytest
 import tomli_w
 
 from ghsplat_jax import cli
+from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
 
 from test_train_loop import CONFIG
@@ -52,6 +53,14 @@ def test_train_and_eval_commands(data_dir, tmp_path, capsys):
     assert saved["raster"]["background"] == [0.0, 0.0, 0.0]  # --set beats --config, in the run's one raster section
     renders = sorted(p.name for p in (out / "renders" / "test").iterdir())
     assert len(renders) == 2 * 4 and any(r.endswith("_depth.exr") for r in renders)
+    # `ghsplat render` of the run's PLY uses the run's raster settings: the pixels eval wrote
+    assert cli.main(["render", str(out / "point_cloud.ply"), "--out", str(tmp_path / "r"), "--data", str(data_dir),
+                     "--split", "test"]) == 0
+    rendered = sorted((tmp_path / "r").glob("*_rgb.png"))
+    assert len(rendered) == 2
+    for path in rendered:
+        evaluated, = (out / "renders" / "test").glob("*" + path.name.replace("_rgb.png", ".png"))
+        assert np.array_equal(read_pixels(path), read_pixels(evaluated)), path.name
     per_view = json.loads((out / "per_view.json").read_text())
     assert len(per_view) == 6 and all(v["render_seconds"] > 0 for v in per_view)
     # `ghsplat eval` reproduces the metrics from the saved files

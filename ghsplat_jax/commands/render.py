@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target", type=float, nargs=3, default=(0.0, 0.0, 0.0))
     p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees")
     p.add_argument("--size", default="640x480", help="WIDTHxHEIGHT for --eye cameras")
-    p.add_argument("--background", type=float, nargs=3, default=(0.0, 0.0, 0.0))
+    p.add_argument("--config", type=Path, help="a run's config.toml whose [raster] settings to use "
+                   "(default: the one beside the PLY, if any)")
+    p.add_argument("--background", type=float, nargs=3, help="overrides the run's background (default black)")
     p.add_argument("--sh-degree", type=int, default=None)
 
 
@@ -57,8 +60,13 @@ def render_to_files(surfels, camera, cfg, out: Path, name: str) -> dict[str, Pat
 def main(args) -> int:
     import ghsplat_jax as gs
 
+    from ghsplat_jax.train.run_dir import raster_settings
+
     surfels = gs.load_ply(args.ply)
-    cfg = gs.RasterConfig(background=tuple(args.background), sh_degree=args.sh_degree)
+    cfg = raster_settings(args.config or args.ply) or gs.RasterConfig()
+    overrides = dict(background=args.background and tuple(args.background), sh_degree=args.sh_degree)
+    cfg = dataclasses.replace(cfg, pair_capacity=None, on_overflow="raise",
+                              **{k: v for k, v in overrides.items() if v is not None})
     for name, cam in _cameras(args):
         files = render_to_files(surfels, cam, cfg, args.out, Path(name).stem)
         print(f"{name}: {', '.join(str(p) for p in files.values())}")

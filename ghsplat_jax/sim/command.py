@@ -85,15 +85,19 @@ def main(args) -> int:
         return 2
     say(f"scene {scene.path} ({scene.num} surfels, {len(scene.tags)} tags); trajectory {traj.duration:.1f} s")
 
+    from ghsplat_jax.train.run_dir import raster_settings
+
+    raster = raster_settings(scene.path)  # a trained run's PLY renders with the run's settings
     lidar = None
     if pattern is not None:
-        lidar = Lidar(pattern, face_width=args.lidar_face_width, depth=args.lidar_depth, batching=args.lidar_batching)
+        lidar = Lidar(pattern, face_width=args.lidar_face_width, depth=args.lidar_depth, batching=args.lidar_batching,
+                      raster_config=raster)
     cfg = simulate.SimConfig(camera_rate=args.camera_rate,
                              lidar_rate=(args.lidar_rate if args.lidar_rate is not None else
                                          (pattern.rate_hz if pattern else 0.0)),
                              duration=args.duration, max_events=args.max_events, depth=args.depth,
                              normals=args.normals, organised_cloud=args.organised)
-    renderer = CameraRenderer()
+    renderer = CameraRenderer(raster_config=raster)
     sinks = []
     recorder = node = viewer = bar = None
     try:

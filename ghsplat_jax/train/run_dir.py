@@ -98,6 +98,16 @@ def load_run_checkpoint(path, optimizers: dict):
     return ckpt.load_checkpoint(path, template)
 
 
+def raster_settings(ply_or_config):
+    """The RasterConfig of the run a PLY belongs to (its folder's config.toml) or of a config.toml
+    given directly; None when there is no run config."""
+    from ghsplat_jax.train.config import load_config
+
+    path = Path(ply_or_config)
+    config = path if path.suffix == ".toml" else path.parent / CONFIG_NAME
+    return load_config(config).raster if config.is_file() else None
+
+
 def load_run(run_dir):
     """(config, surfels, checkpoint metadata or {}, finished) of a training run folder: the
     surfels of point_cloud.ply, or of the checkpoint while the run is unfinished."""
