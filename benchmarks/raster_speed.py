@@ -11,6 +11,7 @@ Writes benchmarks/results/raster_speed.json and .png.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -49,6 +50,13 @@ def typical_scene(n: int, seed: int = 0) -> gs.Surfels:
                            r.normal(0, 0.5, (n, 3)), r.normal(0, 0.1, (n, 15, 3)), 3)
 
 
+def once(fn, *args) -> tuple[float, float]:
+    """(wall s, process CPU s) of one call."""
+    start, start_cpu = time.perf_counter(), time.process_time()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start, time.process_time() - start_cpu
+
+
 def timed(fn, *args, repeats: int):
     """(compile wall s, median wall s, median process CPU s). CPU time counts the work done by
     all of this process's threads, so it stays comparable when other jobs share the machine."""
@@ -80,11 +88,13 @@ def memory_bytes(fn, *args) -> int | None:
 
 
 def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[dict]:
+    """Every variant compiled first, then timed in interleaved rounds (variant A, B, C, A, B, C,
+    ...), so drifting load on a shared machine affects all of them alike; medians per variant."""
     cam = gs.Camera(K=gs.intrinsics(width, height, 60), world_to_cam=gs.look_at([0, -3.0, 0.8], [0, 0, 0]),
                     width=width, height=height)
     s = typical_scene(n)
     target = jax.random.uniform(jax.random.PRNGKey(0), (height, width, 3))
-    rows = []
+    rows, fns = [], {}
     for name in variants:
         cfg = VARIANTS[name]
         pairs, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg)))
@@ -92,28 +102,36 @@ def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[
         slots = max(32, 1 << max(fullest - 1, 0).bit_length())
         row = dict(variant=name, width=width, height=height, surfels=n, tile_size=cfg.tile_size, pairs=pairs,
                    fullest_tile=fullest, capacity=capacity)
+        rows.append(row)
         tiles = -(-width // cfg.tile_size) * -(-height // cfg.tile_size)
         if cfg.backend == "dense" and tiles * slots * cfg.tile_size**2 * 4 * 12 > DENSE_MEMORY_LIMIT:
             row["skipped"] = f"predicted dense block {tiles}x{slots}x{cfg.tile_size**2} exceeds memory"
-            rows.append(row)
             print(row)
             continue
-        forward = jax.jit(lambda s: rasterize(s, cam, cfg, capacity, tile_slots=slots).rgb)
-        loss = lambda s: jnp.sum((rasterize(s, cam, cfg, capacity, tile_slots=slots).rgb - target) ** 2)
-        backward = jax.jit(jax.grad(loss))
-        row["forward_compile_s"], row["forward_s"], row["forward_cpu_s"] = timed(forward, s, repeats=repeats)
-        row["backward_compile_s"], row["forward_backward_s"], row["forward_backward_cpu_s"] = timed(
-            backward, s, repeats=repeats)
-        row["load_average"] = os.getloadavg()[0]
-        row["kept_pairs"] = int(rasterize(s, cam, cfg, capacity, tile_slots=slots).stats.num_kept)
+        render = functools.partial(rasterize, cam=cam, cfg=cfg, capacity=capacity, tile_slots=slots)
+        forward = jax.jit(lambda s, render=render: render(s).rgb)
+        backward = jax.jit(jax.grad(lambda s, render=render: jnp.sum((render(s).rgb - target) ** 2)))
+        row["forward_compile_s"] = once(forward, s)[0]
+        row["backward_compile_s"] = once(backward, s)[0]
+        row["kept_pairs"] = int(render(s).stats.num_kept)
         row["forward_memory_bytes"] = memory_bytes(forward, s)
         row["forward_backward_memory_bytes"] = memory_bytes(backward, s)
+        fns[name] = (row, forward, backward)
+    samples = {name: {"forward": [], "forward_backward": []} for name in fns}
+    for _ in range(repeats):
+        for name, (row, forward, backward) in fns.items():
+            for key, fn in (("forward", forward), ("forward_backward", backward)):
+                samples[name][key].append(once(fn, s))
+    for name, (row, _, _) in fns.items():
+        for key, got in samples[name].items():
+            row[f"{key}_s"] = float(np.median([w for w, _ in got]))
+            row[f"{key}_cpu_s"] = float(np.median([c for _, c in got]))
+        row["load_average"] = os.getloadavg()[0]
         # Work actually done: every composited pair against every pixel of its tile.
-        evals = row["kept_pairs"] * cfg.tile_size**2
+        evals = row["kept_pairs"] * row["tile_size"] ** 2
         row["pair_pixel_evals"] = evals
         row["forward_evals_per_s"] = evals / row["forward_s"]
         row["forward_backward_evals_per_s"] = evals / row["forward_backward_s"]
-        rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     return rows
 

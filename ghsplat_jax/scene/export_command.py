@@ -123,7 +123,11 @@ def run(args) -> dict:
         from ghsplat_jax.scene.tsdf import mesh_from_surfels, save_mesh
 
         voxel = args.mesh_voxel or float(np.ptp(np.percentile(s.means, [1, 99], axis=0), axis=0).max() / 200)
-        mesh = mesh_from_surfels(s, voxel, views_per_ring=args.mesh_views)
+        from ghsplat_jax.train.run_dir import raster_settings
+
+        # One input from a training run renders its mesh views with that run's settings.
+        run = raster_settings(args.inputs[0]) if len(args.inputs) == 1 else None
+        mesh = mesh_from_surfels(s, voxel, views_per_ring=args.mesh_views, config=run)
         info["mesh"] = {"path": str(args.mesh), "vertices": len(mesh.vertices), "faces": len(mesh.faces),
                         "voxel": voxel}
     save_ply(s, args.out, viewer_compatible=args.viewer_compatible)

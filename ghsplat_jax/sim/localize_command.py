@@ -48,7 +48,9 @@ def main(args) -> int:
         return 2
     tags = {t.id: t for t in scene.tags}
     cfg = simulate.SimConfig(camera_rate=args.rate, lidar_rate=0.0, max_events=args.max_frames)
-    renderer = CameraRenderer()
+    from ghsplat_jax.train.run_dir import raster_settings
+
+    renderer = CameraRenderer(raster_config=raster_settings(scene.path))  # a trained run's own settings
 
     def frames_iter():
         for ev in tqdm(simulate.schedule(traj, cfg), desc="localize", unit="frame", dynamic_ncols=True):

@@ -1,0 +1,90 @@
+"""Progress of a training run (finished or not) from its stats.jsonl: steps done, seconds per step
+by window, surfel count and the training-view PSNR against wall time.
+
+    python benchmarks/run_progress.py runs/fern30k --name train_fern_progress
+
+Training PSNR is of the one view each step trains on (smoothed over 100 steps), not a test
+metric: evaluate the run (`ghsplat eval RUN`) for test PSNR. Writes
+benchmarks/results/NAME.json and NAME.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.train.run_dir import STATS_NAME
+
+RESULTS = Path(__file__).parent / "results"
+WINDOWS = [(0, 500), (500, 1000), (1000, 1500), (1500, 3000), (3000, 7000), (7000, 7100), (15000, 15100),
+           (29000, 29100)]
+
+
+def summarize(records: list[dict], schedule_steps: int) -> dict:
+    step = np.array([r["step"] for r in records])
+    elapsed = np.array([r["elapsed_s"] for r in records])
+    psnr = np.array([r.get("psnr") or np.nan for r in records], float)
+    dt = np.diff(elapsed, prepend=elapsed[0])
+    windows = {}
+    for lo, hi in WINDOWS:
+        inside = (step > lo + 1) & (step <= hi)  # the first step of a window may carry a compile
+        if inside.sum() >= 10:
+            windows[f"{lo}-{hi}"] = dict(median_seconds_per_step=float(np.median(dt[inside])),
+                                         surfels=int(np.median([r["num_surfels"] for r, m in zip(records, inside) if m])),
+                                         steps_measured=int(inside.sum()))
+    k = 100
+    smooth = np.convolve(np.nan_to_num(psnr), np.ones(k) / k, mode="valid") if len(psnr) >= k else psnr
+    return dict(steps_done=int(step[-1]), schedule_steps=schedule_steps, finished=int(step[-1]) >= schedule_steps,
+                elapsed_s=float(elapsed[-1]), surfels=int(records[-1]["num_surfels"]), windows=windows,
+                curve=dict(step=step[k - 1:].tolist()[::50], elapsed_s=elapsed[k - 1:].tolist()[::50],
+                           train_psnr_smoothed=[round(float(v), 3) for v in smooth[::50]],
+                           surfels=[r["num_surfels"] for r in records[k - 1:]][::50]))
+
+
+def chart(summary: dict, title: str, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    c = summary["curve"]
+    fig = Figure(figsize=(10, 4))
+    ax1, ax2 = fig.subplots(1, 2)
+    ax1.plot(np.array(c["elapsed_s"]) / 3600, c["train_psnr_smoothed"])
+    ax1.set_xlabel("wall time (h)")
+    ax1.set_ylabel("training-view PSNR (dB, 100-step mean)")
+    ax2.plot(c["step"], c["surfels"])
+    ax2.set_xlabel("step")
+    ax2.set_ylabel("surfels")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def main(argv=None) -> int:
+    import tomllib
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--name", required=True, help="results file name (without extension)")
+    args = ap.parse_args(argv)
+    records = []
+    for line in (args.run / STATS_NAME).read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue  # a line cut short by a stop
+    config = tomllib.loads((args.run / "config.toml").read_text())
+    summary = summarize(records, int(config.get("steps", 30000)))
+    summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"))
+    write_json(RESULTS / f"{args.name}.json", summary)
+    state = "finished" if summary["finished"] else f"{summary['steps_done']} of {summary['schedule_steps']} steps"
+    chart(summary, f"{args.run.name}: {state}, {summary['surfels']} surfels, {summary['elapsed_s'] / 3600:.2f} h",
+          RESULTS / f"{args.name}.png")
+    print(json.dumps({k: summary[k] for k in ("steps_done", "elapsed_s", "surfels", "windows")}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
