@@ -40,6 +40,12 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
 
 
+# Changes of the run's settings timed beside the tile x chunk grid.
+VARIANTS = {"batch32": dict(batch_chunks=32), "batch128": dict(batch_chunks=128), "box3": dict(bounds="box3"),
+            "logspace": dict(compositor="logspace", bounds="box3", batch_chunks=16),
+            "logspace-autodiff": dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16)}
+
+
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
     cam = view.camera
     pairs, fullest = (int(x) for x in count_pairs(surfels, cam, _binning_cfg(cfg)))
@@ -91,6 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--tiles", default="8,16,32")
     ap.add_argument("--chunks", default="16,32")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="other settings to time: " + ",".join(VARIANTS))
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
 
@@ -106,9 +113,7 @@ def main(argv=None) -> int:
     grid = [dataclasses.replace(base, tile_size=t, chunk_size=c)
             for t, c in itertools.product((int(v) for v in args.tiles.split(",")),
                                           (int(v) for v in args.chunks.split(",")))]
-    variants = [dict(batch_chunks=32), dict(batch_chunks=128), dict(bounds="box3"),
-                dict(compositor="logspace", bounds="box3", batch_chunks=16),
-                dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16)]
+    variants = [VARIANTS[name] for name in args.variants.split(",") if name]
     grid = [base] + [g for g in grid if g != base] + [dataclasses.replace(base, **v) for v in variants]
     reference = None
     rows = []

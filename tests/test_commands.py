@@ -107,16 +107,18 @@ def finished_run(scene, tmp_path_factory):
 def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
     """raster_ablation imports its sibling raster_speed: `ghsplat bench` must put benchmarks/ on the path."""
     proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
-                   "--tiles", "8", "--chunks", "16", "--results", tmp_path)
+                   "--tiles", "8", "--chunks", "16", "--variants", "box3,logspace-autodiff", "--results", tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads((tmp_path / "raster_ablation.json").read_text())
     assert result["num_surfels"] == DATA["num_surfels"] and result["image_size"] == [W, H]
     assert result["views"] == ["test/view_000.png"] and result["run"] == str(finished_run)
     rows = result["rows"]
-    assert [(r["tile_size"], r["chunk_size"], r["backward"]) for r in rows] == [(8, 16, "custom_vjp"),
-                                                                               (8, 16, "autodiff")]
-    assert rows[0]["max_abs_diff_vs_default"] == 0.0 and rows[1]["max_abs_diff_vs_default"] < 1e-5
-    assert rows[0]["pairs"] == rows[1]["pairs"] > 0 and rows[0]["pixel_evals"] == rows[0]["pairs"] * 64
+    assert [(r["compositor"], r["bounds"], r["backward"]) for r in rows] == [
+        ("carried", "tight", "custom_vjp"), ("carried", "box3", "custom_vjp"), ("logspace", "box3", "autodiff")]
+    assert rows[0]["max_abs_diff_vs_default"] == 0.0
+    assert rows[1]["max_abs_diff_vs_default"] < 1e-5 and rows[2]["max_abs_diff_vs_default"] < 2e-3  # same image
+    assert 0 < rows[0]["kept_pairs"] <= rows[1]["kept_pairs"] == rows[2]["kept_pairs"]  # tight bounds keep fewer
+    assert all(r["pixel_evals"] == r["kept_pairs"] * 64 for r in rows)
     assert all(r["forward_s"] > 0 and r["forward_backward_s"] > 0 for r in rows)
     assert read_pixels(tmp_path / "raster_ablation.png").ndim == 3
 
