@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from ghsplat_jax.io_utils import write_json
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = {
     # name: (dataset folder, overrides, target test PSNR)
@@ -37,12 +39,15 @@ SCENES = {
 
 def run_training(name: str, data: str, overrides: dict, steps: int, out: Path, extra: dict,
                  until: int | None = None) -> dict:
-    from ghsplat_jax.train.config import to_toml
+    import tomli_w
+
+    from ghsplat_jax.io_utils import atomic_write
 
     out.mkdir(parents=True, exist_ok=True)
     cfg = dict(overrides, data=data, steps=steps, progress=False, scale_schedule=steps < 30_000, **extra)
     cfg_path = out / "bench_config.toml"
-    cfg_path.write_text(to_toml(cfg))
+    with atomic_write(cfg_path, "w") as fh:
+        fh.write(tomli_w.dumps(cfg))
     cli = [sys.executable, "-m", "ghsplat_jax.cli"]
     cmd = cli + ["train", "--out", str(out), "--config", str(cfg_path)]
     if until is not None:
@@ -129,7 +134,7 @@ def main(argv=None) -> int:
             f"_until{args.until}" if args.until is not None else f"_scaled{args.steps}")
         out = Path(args.results) / f"train_{name}{suffix}.json"
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(out, result)
         print(json.dumps(result, indent=2))
     return 0
 

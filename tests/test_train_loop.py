@@ -8,6 +8,7 @@ import json
 import logging
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -203,3 +204,27 @@ def test_pair_overflow_discards_the_step_and_grows_the_buffer(tmp_path, caplog):
     assert all(s["overflow"] == 0 and s["num_pairs"] <= s["pair_capacity"] for s in stats)  # nothing dropped
     assert stats[0]["pair_capacity"] >= 4096 and len({s["pair_capacity"] for s in stats}) == 1
     assert step_mod.TRACE_COUNTS["train_step"] - before == 2  # the 64-pair bucket and the grown one
+
+
+def test_compiled_step_follows_every_setting_of_its_config():
+    """Steps are built from their config, not looked up by a hand-picked key: variants that differ
+    only in a learning rate or a loss weight get their own compiled step, equal configs equal results."""
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.trainer import step_raster_config
+    from raster_scenes import random_scene
+
+    view = dataset().train[0]
+    image, cam = jnp.asarray(view.image), view.camera
+    params, active = pad_params(random_scene(64, seed=2, degree=1), 128)
+    variants = {"base": CONFIG, "same": CONFIG.replace(), "lr": CONFIG.replace(lr_opacity=10 * CONFIG.lr_opacity),
+                "loss": CONFIG.replace(lambda_dssim=0.9)}
+    out = {}
+    for name, cfg in variants.items():
+        optimizers, step = make_train_step(cfg)
+        new, m = step(new_state(params, active, optimizers), image, cam.K, cam.world_to_cam, jnp.float32(1e-4),
+                      step_raster_config(cfg, 16384), cam.width, cam.height)
+        out[name] = (np.asarray(new.params.opacity_logits), float(m["loss"]))
+    assert np.array_equal(out["base"][0], out["same"][0]) and out["base"][1] == out["same"][1]
+    assert not np.allclose(out["lr"][0], out["base"][0])      # the learning rate reached the update
+    assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
