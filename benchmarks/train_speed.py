@@ -41,26 +41,36 @@ SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
 PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
 
 
-def time_steps(config: TrainConfig, dataset, checkpoint: Path | None, steps: int) -> dict:
-    """Median wall and CPU seconds of `steps` training steps from the checkpoint (or step 0)."""
+def _session(config: TrainConfig, dataset, checkpoint: Path | None):
     session = trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
     if checkpoint is not None:
         session._restore(checkpoint)
-    start = int(session.state.step)
     state0 = session.state
-    session.step(start)  # compile
+    session.step(int(state0.step))  # compile
     session.state = state0
-    wall, cpu, pairs, kept = [], [], [], []
+    return session
+
+
+def time_steps(configs: dict, dataset, checkpoint: Path | None, steps: int) -> dict:
+    """Median wall and CPU seconds per training step for each config, from the same checkpoint (or
+    step 0), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike."""
+    sessions = {name: _session(cfg, dataset, checkpoint) for name, cfg in configs.items()}
+    start = int(next(iter(sessions.values())).state.step)
+    samples = {name: [] for name in sessions}
     for k in range(steps):
-        t0, c0 = time.perf_counter(), time.process_time()
-        m = session.step(start + k)
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        pairs.append(m["num_pairs"])
-    return dict(step=start, surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
-                pair_capacity=session.pair_capacity, candidate_pairs=float(np.median(pairs)),
-                seconds_per_step=float(np.median(wall)), cpu_seconds_per_step=float(np.median(cpu)),
-                load_average=os.getloadavg()[0])
+        for name, session in sessions.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            m = session.step(start + k)
+            samples[name].append((time.perf_counter() - t0, time.process_time() - c0, m["num_pairs"]))
+    rows = {}
+    for name, session in sessions.items():
+        wall, cpu, pairs = (np.array(v) for v in zip(*samples[name]))
+        rows[name] = dict(step=start, surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
+                          pair_capacity=session.pair_capacity, candidate_pairs=float(np.median(pairs)),
+                          seconds_per_step=float(np.median(wall)), cpu_seconds_per_step=float(np.median(cpu)),
+                          load_average=os.getloadavg()[0])
+        print(name, rows[name], flush=True)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -76,10 +86,7 @@ def main(argv=None) -> int:
     dataset = load_training_data(config)
     checkpoint = Path(args.checkpoint) if args.checkpoint else None
     variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
-    rows = {}
-    for name, cfg in variants.items():
-        rows[name] = time_steps(cfg, dataset, checkpoint, args.steps)
-        print(name, rows[name], flush=True)
+    rows = time_steps(variants, dataset, checkpoint, args.steps)
     window = dict(rows=rows, speedup=rows["previous"]["seconds_per_step"] / rows["current"]["seconds_per_step"],
                   cpu_speedup=rows["previous"]["cpu_seconds_per_step"] / rows["current"]["cpu_seconds_per_step"],
                   exp_rate_per_s=exp_rate(), peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
