@@ -20,6 +20,7 @@ import os
 import platform
 import resource
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 
@@ -112,7 +113,8 @@ def chart(windows: dict, path: Path) -> None:
     x = np.arange(len(labels))
     for i, name in enumerate(("previous", "current")):
         ax.bar(x + (i - 0.5) * 0.38, [windows[k]["rows"][name]["seconds_per_step"] for k in labels], 0.38, label=name)
-    ax.set_xticks(x, [f"{k}\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels])
+    ax.set_xticks(x, [textwrap.fill(k, 30) + f"\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels],
+                  fontsize=8)
     ax.set_ylabel("seconds per training step (median)")
     ax.set_title("Training step on a 2-core CPU: previous vs current rasterizer")
     ax.legend()
