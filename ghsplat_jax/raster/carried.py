@@ -69,9 +69,8 @@ def _corner_offsets(f, tile, st: Static):
 def _evaluate(f, dx, dy, valid, st: Static):
     """alpha, hit depth and what the hand-written pullback needs, all (K, B, P)."""
     g = lambda i: f[i][..., None]
-    p0 = g(0) + g(3) * dx + g(6) * dy
-    p1 = g(1) + g(4) * dx + g(7) * dy
-    p2 = g(2) + g(5) * dx + g(8) * dy
+    pc, a, b = f[PC][..., None], f[A][..., None], f[B][..., None]   # (3, K, B, 1) each
+    p0, p1, p2 = (pc[i] + a[i] * dx + b[i] * dy for i in range(3))
     ok = (jnp.abs(p0) < EDGE_ON * jnp.abs(p2)) & (jnp.abs(p1) < EDGE_ON * jnp.abs(p2))
     inv = 1.0 / jnp.where(ok, p2, 1.0)
     u, v = p0 * inv, p1 * inv
@@ -206,7 +205,8 @@ def _fwd(st, table, valid, tile, first):
 
 
 def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
-    """Hand-derived gradients of the per-pair fields (K, B, NUM_FIELDS - 6) from d alpha and d z."""
+    """Hand-derived gradients (NUM_FIELDS - 6, K, B) of the geometric per-pair fields (all but
+    colour and normal) from d alpha and d z."""
     u, v, inv, rho, hit, e, oe = aux
     live = d_alpha != 0
     unclamped = live & (oe < 0.99)
