@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 import ghsplat_jax as gs
-from ghsplat_jax.raster import RasterOverflowError, rasterize
-from ghsplat_jax.raster.render import capacity_bucket
+from ghsplat_jax.raster import rasterize
 from raster_scenes import camera, random_scene
 
 

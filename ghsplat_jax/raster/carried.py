@@ -237,7 +237,7 @@ def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
 def _bwd(st: Static, residuals, cotangents):
     table, valid, tile, first, totals, selected = residuals
     g_totals, g_median = cotangents
-    num_chunks, pixels = tile.shape[0], st.tile_size ** 2
+    pixels = st.tile_size ** 2
     batch = st.batch_chunks
     pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
     g_totals, g_median, selected = pad(g_totals, 0.0), pad(g_median, 0.0), pad(selected, -1)
