@@ -21,6 +21,8 @@ import os
 import tomllib
 from pathlib import Path
 
+from ghsplat_jax.config_values import coerce
+
 
 @dataclasses.dataclass(frozen=True)
 class LayoutConfig:
@@ -98,38 +100,9 @@ _SECTION_TYPES = {"layout": LayoutConfig, "plant": PlantConfig, "ground": Ground
                   "structure": StructureConfig, "tags": TagConfig, "render": RenderConfig}
 
 
-# train/config.py has a _coerce of its own (TrainConfig: flat fields, ConfigError, ints from
-# whole floats, n-tuples). Merging them: one `coerce(value, default, where, error=ValueError)`
-# in a shared low module (e.g. ghsplat_jax/config_values.py), with this one's [min, max] pairs
-# as a tuple case of length 2 and train's int-from-whole-float rule as an option.
 def _coerce(value, default, where: str):
-    """Check `value` against the type of `default` (int, float, bool, str, 2-tuple)."""
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"{where} must be true or false, got {value!r}")
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"{where} must be an integer, got {value!r}")
-        return value
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{where} must be a number, got {value!r}")
-        return float(value)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise ValueError(f"{where} must be a string, got {value!r}")
-        return value
-    if isinstance(default, tuple):
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            value = [value, value]  # a single number means a fixed value
-        if not isinstance(value, list) or len(value) != 2:
-            raise ValueError(f"{where} must be a [min, max] pair, got {value!r}")
-        out = tuple(_coerce(v, default[0], where) for v in value)
-        if out[0] > out[1]:
-            raise ValueError(f"{where} must have min <= max, got {value!r}")
-        return out
-    raise TypeError(f"unsupported config field type at {where}")
+    """Generator fields: 2-tuples are [min, max] ranges (one number: a fixed value)."""
+    return coerce(value, default, where, ranges=True)
 
 
 def _validate(cfg: SceneConfig) -> None:

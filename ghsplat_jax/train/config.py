@@ -12,6 +12,7 @@ import json
 import os
 from pathlib import Path
 
+from ghsplat_jax.config_values import coerce
 from ghsplat_jax.raster.config import RasterConfig
 
 STRATEGIES = ("default", "budget")
@@ -179,7 +180,7 @@ def apply_overrides(config: TrainConfig, overrides: dict, source: str = "overrid
             hint = f" (did you mean one of {close}?)" if close else ""
             raise ConfigError(f"{source}: unknown training option {key!r}{hint}")
         default = getattr(TrainConfig, key, None)
-        changes[key] = _coerce(value, default, f"{source}: option {key!r}")
+        changes[key] = coerce(value, default, f"{source}: option {key!r}", ConfigError)
     if raster:
         changes["raster"] = _raster_overrides(config.raster, raster, source)
     try:
@@ -197,37 +198,13 @@ def _raster_overrides(base: RasterConfig, values: dict, source: str) -> RasterCo
         default = getattr(RasterConfig, key)
         where = f"{source}: option 'raster.{key}'"
         if default is None:  # optional integers (pair_capacity, sh_degree)
-            changes[key] = None if value is None else _coerce(value, 0, where)
+            changes[key] = None if value is None else coerce(value, 0, where, ConfigError)
         else:
-            changes[key] = _coerce(value, default, where)
+            changes[key] = coerce(value, default, where, ConfigError)
     try:
         return dataclasses.replace(base, **changes)
     except ValueError as exc:
         raise ConfigError(f"{source}: {exc}") from None
-
-
-def _coerce(value, default, where: str):
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where} must be true or false, got {value!r}")
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
-            raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return int(value)
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where} must be a number, got {value!r}")
-        return float(value)
-    if isinstance(default, str):
-        if not isinstance(value, (str, os.PathLike)):
-            raise ConfigError(f"{where} must be a string, got {value!r}")
-        return str(value)
-    if isinstance(default, tuple):
-        if not isinstance(value, (list, tuple)) or len(value) != len(default):
-            raise ConfigError(f"{where} must be a list of {len(default)} numbers, got {value!r}")
-        return tuple(float(v) for v in value)
-    return value
 
 
 def load_config(path: str | os.PathLike, base: TrainConfig | None = None) -> TrainConfig:
@@ -249,9 +226,9 @@ def load_config(path: str | os.PathLike, base: TrainConfig | None = None) -> Tra
 
 
 def save_config(config: TrainConfig, path: str | os.PathLike) -> Path:
-    from ghsplat_jax.io_utils import atomic_write
-
     import tomli_w
+
+    from ghsplat_jax.io_utils import atomic_write
 
     with atomic_write(path, "w") as fh:
         fh.write("# resolved training config (ghsplat train); pass with --config to reproduce\n")
