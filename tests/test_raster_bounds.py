@@ -64,3 +64,19 @@ def test_every_dropped_pair_has_no_pixel_above_the_alpha_threshold(lowpass):
         ty, tx = divmod(t, grid.tiles_x)
         block = alpha[i][ty * 8:(ty + 1) * 8, tx * 8:(tx + 1) * 8]
         assert block.max() < 1 / 255, (i, t, block.max())
+
+
+def test_packed_tile_sort_matches_the_two_key_sort(monkeypatch):
+    """The single-uint32 (tile, depth rank) sort lays out the same pairs as the stable two-operand
+    sort used where the packed keys would not fit."""
+    s, cam = mixed_scene(seed=3), camera(80, 56)
+    p = project(s, cam, 0.01, 1, True)
+    grid = binning.TileGrid.for_image(cam.width, cam.height, 8)
+    layout = lambda: binning.bin_pairs(p, cam.width, cam.height, grid, 4096, 16, 512)
+    packed = layout()
+    monkeypatch.setattr(binning, "PACKED_KEYS_MAX", 0)
+    two_key = layout()
+    assert int(packed.num_kept) > 100
+    for field in ("pair_surfel", "chunk_tile", "chunk_start", "chunk_count", "chunk_first", "tile_count"):
+        np.testing.assert_array_equal(np.asarray(getattr(packed, field)), np.asarray(getattr(two_key, field)),
+                                      err_msg=field)

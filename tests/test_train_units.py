@@ -231,6 +231,22 @@ def test_grow_pool_and_knn_init():
     assert ls[0] == pytest.approx(0.5 * math.log((1 + 4 + 9) / 3), rel=1e-5)
 
 
+
+def test_initial_scales_random_factor_and_clamp():
+    from ghsplat_jax.train.state import initial_surfels
+
+    pts = np.random.default_rng(1).uniform(-1, 1, (500, 3)).astype(np.float32)
+    knn = knn_log_scales(pts)
+    init = lambda points, **kw: initial_surfels(points, None, np.zeros(3), 1.0, 4.0,
+                                                TrainConfig(init_random_points=500, **kw), np.random.default_rng(0))
+    # dataset points keep the nearest-neighbour scale; the factor applies to random points only
+    np.testing.assert_allclose(init(pts, random_init_scale=0.5).log_scales[:, 0], knn, rtol=1e-6)
+    rand = init(None, random_init_scale=0.5)
+    np.testing.assert_allclose(rand.log_scales[:, 0], knn_log_scales(rand.means) + math.log(0.5), rtol=1e-5)
+    # the clamp is a fraction of the extent (4.0 here)
+    clamped = init(pts, init_scale_max=0.01).log_scales
+    assert np.all(clamped <= math.log(0.04) + 1e-6) and np.any(clamped < knn[:, None] - 1e-3)
+
 def test_checkpoint_roundtrip_and_refuses_nan(tmp_path):
     st = _state()
     path = checkpoint.save_checkpoint(tmp_path / "c.npz", st, {"step": 3, "capacity": CAP})

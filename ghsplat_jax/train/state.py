@@ -96,16 +96,17 @@ def random_init_box(cameras, fallback_center, fallback_half: float) -> tuple[np.
     return center, float(np.median(np.linalg.norm(o - center, axis=1)) * np.tan(max(half_fov)))
 
 
-def initial_surfels(points, colors, box_center, box_half: float, config, rng) -> Surfels:
+def initial_surfels(points, colors, box_center, box_half: float, extent: float, config, rng) -> Surfels:
     """Host Surfels from dataset points, or random points in the cube box_center +- box_half
-    when there are too few (see `random_init_box`)."""
+    when there are too few (see `random_init_box`); `extent` scales `init_scale_max`."""
     from ghsplat_jax.core.sh import rgb_to_dc
 
     points = np.zeros((0, 3), np.float32) if points is None else np.asarray(points, np.float32).reshape(-1, 3)
     finite = np.all(np.isfinite(points), axis=1)
     points = points[finite]
     colors = None if colors is None else np.asarray(colors, np.float32).reshape(-1, 3)[finite]
-    if len(points) < config.init_min_points:
+    random = len(points) < config.init_min_points
+    if random:
         n = config.init_random_points
         points = (np.asarray(box_center) + rng.uniform(-box_half, box_half, size=(n, 3))).astype(np.float32)
         colors = rng.uniform(0, 1, size=(n, 3)).astype(np.float32)
@@ -117,8 +118,10 @@ def initial_surfels(points, colors, box_center, box_half: float, config, rng) ->
         colors = np.full_like(points, 0.5)
     n = len(points)
     log_s = knn_log_scales(points)
+    if random:
+        log_s = log_s + np.float32(np.log(config.random_init_scale))
     if config.init_scale_max > 0:
-        log_s = np.minimum(log_s, np.log(config.init_scale_max * scene_extent))
+        log_s = np.minimum(log_s, np.float32(np.log(config.init_scale_max * extent)))
     k = (config.sh_degree + 1) ** 2 - 1
     logit = np.log(config.init_opacity / (1 - config.init_opacity))
     return Surfels(

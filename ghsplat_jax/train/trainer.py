@@ -146,7 +146,7 @@ class _Session:
         c = self.config
         rng = np.random.default_rng(c.seed)
         box = random_init_box([v.camera for v in self.ds.train], self.ds.scene_center, 0.5 * self.extent)
-        init = initial_surfels(self.ds.points, self.ds.point_colors, *box, c, rng)
+        init = initial_surfels(self.ds.points, self.ds.point_colors, *box, self.extent, c, rng)
         if c.strategy == "budget":
             self.max_surfels = c.max_surfels or 5 * init.num
             if init.num > self.max_surfels:
