@@ -54,8 +54,14 @@ class Experiment:
     source: Path
 
 
+def _table(value, what: str, source) -> dict:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{source}: {what} must be a table, got {value!r}")
+    return value
+
+
 def _name(entry: dict, kind: str, i: int, source) -> str:
-    name = entry.get("name")
+    name = _table(entry, f"{kind}[{i}]", source).get("name")
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
     return name
@@ -70,17 +76,22 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
         spec = tomllib.loads(path.read_text())
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read experiment ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     unknown = set(spec) - {"name", "description", "output", "train", "scenes", "variants"}
     if unknown:
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
     name = spec.get("name", path.stem)
+    for key in ("name", "description", "output"):
+        if not isinstance(spec.get(key, ""), str):
+            raise ConfigError(f"{path}: '{key}' must be a string, got {spec[key]!r}")
     scenes = spec.get("scenes")
     if not isinstance(scenes, list) or not scenes:
         raise ConfigError(f"{path}: an experiment needs at least one [[scenes]] entry")
     variants = spec.get("variants") or [{"name": "default"}]
-    base = apply_overrides(TrainConfig(), spec.get("train", {}), f"{path} [train]")
+    if not isinstance(variants, list):
+        raise ConfigError(f"{path}: 'variants' must be an array of tables ([[variants]])")
+    base = apply_overrides(TrainConfig(), _table(spec.get("train", {}), "[train]", path), f"{path} [train]")
     out_root = Path(output or spec.get("output") or Path("runs") / name)
     runs = []
     seen = set()
@@ -94,8 +105,9 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
                 raise ConfigError(f"{path}: run {sname}/{vname} appears twice")
             seen.add((sname, vname))
             where = f"{path} scene {sname!r} variant {vname!r}"
-            cfg = apply_overrides(base, dict(scene.get("train", {}), data=scene["data"]), where)
-            cfg = apply_overrides(cfg, variant.get("train", {}), where)
+            scene_train = _table(scene.get("train", {}), f"scene {sname!r} train", path)
+            cfg = apply_overrides(base, dict(scene_train, data=scene["data"]), where)
+            cfg = apply_overrides(cfg, _table(variant.get("train", {}), f"variant {vname!r} train", path), where)
             if overrides:
                 cfg = apply_overrides(cfg, overrides, "command line")
             runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
