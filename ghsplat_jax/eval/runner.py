@@ -129,31 +129,56 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
 
 
-def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
-                   evaluate_only: bool = False) -> dict:
-    """Train every unfinished run (resuming interrupted ones), then write the reports.
-    Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+def run_one(run: PlannedRun) -> str | None:
+    """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
+    when interrupted. Returns None, or the error text (one broken scene must not stop the set).
+    The executors (local, Ray) both call this, so a run behaves the same wherever it runs."""
+    if run.finished:
+        log.info("%s/%s: finished, skipped", run.scene, run.variant)
+        return None
+    log.info("%s/%s: training into %s", run.scene, run.variant, run.out_dir)
+    try:
+        train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        msg = f"{type(exc).__name__}: {exc}"
+        log.error("%s/%s failed: %s", run.scene, run.variant, msg)
+        log.debug(traceback.format_exc())
+        return msg
+    return None
+
+
+def _run_locally(runs: list[PlannedRun], stop_on_error: bool) -> list[tuple[str, str]]:
     failed = []
-    for r in exp.runs:
-        if only and r.scene not in only and f"{r.scene}/{r.variant}" not in only:
-            continue
-        if r.finished:
-            log.info("%s/%s: finished, skipped", r.scene, r.variant)
-            continue
-        if evaluate_only:
-            continue
-        log.info("%s/%s: training into %s", r.scene, r.variant, r.out_dir)
-        try:
-            train_and_evaluate(r.config, r.out_dir, resume=has_checkpoint(r.out_dir))
-        except KeyboardInterrupt:
-            raise
-        except Exception as exc:  # one broken scene must not stop the set
-            msg = f"{type(exc).__name__}: {exc}"
-            log.error("%s/%s failed: %s", r.scene, r.variant, msg)
-            log.debug(traceback.format_exc())
+    for r in runs:
+        msg = run_one(r)
+        if msg is not None:
             failed.append((f"{r.scene}/{r.variant}", msg))
             if stop_on_error:
-                raise
+                break
+    return failed
+
+
+def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
+                   evaluate_only: bool = False, executor: str = "local", ray_options: dict | None = None) -> dict:
+    """Train every unfinished run (resuming interrupted ones), then write the reports.
+    executor: "local" (one run after another in this process) or "ray" (one Ray task per run,
+    see eval/ray_executor.py; `ray_options` are its keyword arguments).
+    Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+    selected = [r for r in exp.runs if not only or r.scene in only or f"{r.scene}/{r.variant}" in only]
+    todo = [] if evaluate_only else [r for r in selected if not r.finished]
+    for r in selected:
+        if r.finished:
+            log.info("%s/%s: finished, skipped", r.scene, r.variant)
+    if executor == "local":
+        failed = _run_locally(todo, stop_on_error)
+    elif executor == "ray":
+        from ghsplat_jax.eval.ray_executor import run_on_ray
+
+        failed = run_on_ray(todo, stop_on_error=stop_on_error, **(ray_options or {})) if todo else []
+    else:
+        raise ValueError(f"unknown executor {executor!r} (local or ray)")
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
 
