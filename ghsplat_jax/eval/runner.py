@@ -122,6 +122,11 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     from ghsplat_jax.train import train
     from ghsplat_jax.train.run_dir import load_training_data
 
+    if resume:  # a process killed mid-write leaves scratch folders beside the outputs
+        from ghsplat_jax.io_utils import remove_scratch
+
+        for p in remove_scratch(out_dir):
+            log.info("removed %s, left by an interrupted write", p)
     dataset = dataset if dataset is not None else load_training_data(config)
     result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
     if not evaluate or result.steps < config.resolved().steps:
