@@ -67,3 +67,10 @@ def test_resources_of_a_run():
     assert resources({"CPU": 8.0}) == {"num_cpus": 1.0, "num_gpus": 0.0}
     assert resources({"CPU": 8.0, "GPU": 2.0}) == {"num_cpus": 1.0, "num_gpus": 1.0}
     assert resources({"CPU": 8.0}, cpus_per_run=4) == {"num_cpus": 4.0, "num_gpus": 0.0}
+
+
+def test_ray_flags_need_the_ray_executor(capsys):
+    from ghsplat_jax import cli
+
+    assert cli.main(["run", str(QUICK), "--address", "auto"]) == 2
+    assert "--executor ray" in capsys.readouterr().err

@@ -1,8 +1,8 @@
 """Experiment runs as Ray tasks: `ghsplat run EXP.toml --executor ray [--address ADDR]`.
 
 Each (scene, variant) is one task that reserves what a run needs (a GPU when the cluster
-has GPUs, else `cpus_per_run` CPUs) and calls the same `runner.run_one` as the local
-executor: finished runs are skipped, interrupted ones resume from their checkpoint, and
+has GPUs, else `cpus_per_run` CPUs) and calls the function the runner gives it, the same
+`runner.run_one` the local executor calls: finished runs are skipped, interrupted ones resume from their checkpoint, and
 every run writes its usual folder. A task whose worker dies (a node lost, memory) is
 retried by Ray and resumes from the last checkpoint it wrote.
 
@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-
-from ghsplat_jax.eval.runner import PlannedRun, run_one
+from typing import Callable
 
 log = logging.getLogger("ghsplat.run")
 
 
-def _task(run: PlannedRun) -> str | None:
-    """What a Ray worker executes (a module-level function, so workers import it by name)."""
+def _task(work: Callable, run) -> str | None:
+    """What a Ray worker executes; `work` travels by reference (module and name), so workers
+    import the runner themselves."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return run_one(run)
+    return work(run)
 
 
 def resources(cluster: dict, cpus_per_run: float | None = None, gpus_per_run: float | None = None) -> dict:
@@ -37,10 +37,11 @@ def resources(cluster: dict, cpus_per_run: float | None = None, gpus_per_run: fl
     return {"num_cpus": float(cpus_per_run), "num_gpus": float(gpus_per_run)}
 
 
-def run_on_ray(runs: list[PlannedRun], address: str | None = None, stop_on_error: bool = False,
+def run_on_ray(runs: list, work: Callable, address: str | None = None, stop_on_error: bool = False,
                cpus_per_run: float | None = None, gpus_per_run: float | None = None,
                max_retries: int = 2) -> list[tuple[str, str]]:
-    """Run `runs` as Ray tasks; returns the failed ones as (scene/variant, message).
+    """Run `work(run)` for each of `runs` (runner.PlannedRun) as Ray tasks; `work` returns None
+    or an error text. Returns the failed runs as (scene/variant, message).
 
     address: None starts a local Ray instance (or uses the one this process already
     started), "auto" joins the cluster this machine belongs to, "ray://HOST:10001" connects
@@ -55,7 +56,7 @@ def run_on_ray(runs: list[PlannedRun], address: str | None = None, stop_on_error
         need = resources(ray.cluster_resources(), cpus_per_run, gpus_per_run)
         task = ray.remote(_task).options(max_retries=max_retries, **need)
         runs = [dataclasses.replace(r, out_dir=r.out_dir.absolute()) for r in runs]  # workers' cwd differs
-        pending = {task.remote(r): f"{r.scene}/{r.variant}" for r in runs}
+        pending = {task.remote(work, r): f"{r.scene}/{r.variant}" for r in runs}
         log.info("submitted %d runs to Ray, each reserving %s", len(pending), need)
         failed = []
         while pending:

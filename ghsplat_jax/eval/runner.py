@@ -181,7 +181,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     elif executor == "ray":
         from ghsplat_jax.eval.ray_executor import run_on_ray
 
-        failed = run_on_ray(todo, stop_on_error=stop_on_error, **(ray_options or {})) if todo else []
+        failed = run_on_ray(todo, run_one, stop_on_error=stop_on_error, **(ray_options or {})) if todo else []
     else:
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
     rows, reports = collect(exp)
