@@ -9,7 +9,6 @@ import json
 import numpy as np
 import pytest
 
-from ghsplat_jax.sim import messages as m
 from ghsplat_jax.sim import recorder
 
 
