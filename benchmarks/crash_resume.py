@@ -73,10 +73,11 @@ def launch(data: Path, config: Path, out: Path) -> subprocess.Popen:
     return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
 
 
-def checkpoint_in_progress(out: Path) -> bool:
+def checkpoint_scratch(out: Path) -> set[str]:
+    """The temporary folders of checkpoint writes in `out` (atomic_path names them .checkpoint.npz.*)."""
     from ghsplat_jax.train.run_dir import CHECKPOINT_NAME
 
-    return out.is_dir() and any(p.name.startswith(f".{CHECKPOINT_NAME}.") for p in out.iterdir())
+    return {p.name for p in out.iterdir() if p.name.startswith(f".{CHECKPOINT_NAME}.")} if out.is_dir() else set()
 
 
 def steps_logged(out: Path) -> int:
@@ -106,6 +107,8 @@ def kill_and_resume(data: Path, config: Path, out: Path, moments: list[str], ste
     kills = []
     for moment in moments:
         before = steps_logged(out)
+        stale = checkpoint_scratch(out)  # left by the previous kill; the resumed run removes it
+        writing = lambda: bool(checkpoint_scratch(out) - stale)  # noqa: E731 (a write of this process)
         t0 = time.monotonic()
         proc = launch(data, config, out)
         if moment == "any":
@@ -114,12 +117,12 @@ def kill_and_resume(data: Path, config: Path, out: Path, moments: list[str], ste
             assert _wait(proc, lambda: steps_logged(out) > before), _failure(proc)
             time.sleep(rng.uniform(0.0, 0.3))
         elif moment == "checkpoint":
-            assert _wait(proc, lambda: checkpoint_in_progress(out)), _failure(proc)
+            assert _wait(proc, writing), _failure(proc)
             time.sleep(rng.uniform(0.0, 0.5 * CHECKPOINT_SLEEP))
-            assert checkpoint_in_progress(out), "the checkpoint write ended before the kill"
+            assert writing(), "the checkpoint write ended before the kill"
         else:
             raise ValueError(f"unknown moment {moment!r}")
-        mid_checkpoint = checkpoint_in_progress(out)
+        mid_checkpoint = writing()
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
         proc.wait()
