@@ -136,10 +136,12 @@ def _rest_names(path: Path, names) -> list[str]:
     return expected
 
 
-def load_ply(path: str | os.PathLike) -> Surfels:
+def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     """Read a 2DGS (or 3DGS) Gaussian PLY into Surfels (numpy float32 fields).
 
-    3DGS files have three scales: the largest two are kept and a warning says so.
+    3DGS files have three scales: the largest two are kept and a warning says so. NaN or Inf
+    values are an error (they must never reach a render) unless `finite=False`, for tools
+    that drop such surfels themselves (`ghsplat export`).
     """
     path = Path(path)
     v = read_vertices(path)
@@ -149,7 +151,8 @@ def load_ply(path: str | os.PathLike) -> Surfels:
         raise PlyError(f"{path}: not a Gaussian PLY, missing properties {missing}")
     col = lambda n: np.asarray(v[n], np.float32)
     rest_names = _rest_names(path, names)
-    _check_finite(path, v, _REQUIRED + rest_names + (["scale_2"] if "scale_2" in names else []))
+    if finite:
+        _check_finite(path, v, _REQUIRED + rest_names + (["scale_2"] if "scale_2" in names else []))
     if len(rest_names) % 3:
         raise PlyError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3")
     k = len(rest_names) // 3
@@ -181,7 +184,8 @@ def _check_finite(path: Path, v: np.ndarray, names: list[str]) -> None:
         with np.errstate(over="ignore", invalid="ignore"):
             bad = np.count_nonzero(~np.isfinite(np.asarray(v[name], np.float32)))
         if bad:
-            raise PlyError(f"{path}: {bad} of {len(v)} vertices have a non-finite '{name}' (NaN or Inf)")
+            raise PlyError(f"{path}: {bad} of {len(v)} vertices have a non-finite '{name}' (NaN or Inf); "
+                           "`ghsplat export IN.ply --out OUT.ply` drops such surfels")
 
 
 # Right-multiplied rotations that move a 3DGS Gaussian's smallest axis into the normal slot:
