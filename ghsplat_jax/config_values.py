@@ -3,6 +3,7 @@ training config and the scene generator's."""
 
 from __future__ import annotations
 
+import math
 import os
 
 
@@ -24,6 +25,8 @@ def coerce(value, default, where: str, error: type[Exception] = ValueError, rang
     if isinstance(default, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise error(f"{where} must be a number, got {value!r}")
+        if not math.isfinite(value):  # TOML spells nan and inf; neither is a setting
+            raise error(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if isinstance(default, str):
         if not isinstance(value, (str, os.PathLike)):

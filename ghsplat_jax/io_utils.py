@@ -47,6 +47,20 @@ def atomic_path(path: str | os.PathLike):
         shutil.rmtree(scratch, ignore_errors=True)
 
 
+def remove_scratch(folder: str | os.PathLike) -> list[Path]:
+    """Remove what writers killed mid-write (SIGKILL, power loss) left in `folder`: the
+    scratch folders of `atomic_path` and the `.NAME.old` folders of `replace_path`. Only for a
+    folder no other process is writing into (a run being resumed)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stale = [p for p in folder.iterdir() if p.is_dir() and p.name.startswith(".")
+             and (p.name.endswith(".tmp") or p.name.endswith(".old"))]
+    for p in stale:
+        shutil.rmtree(p, ignore_errors=True)
+    return stale
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb"):
     """Open a file for writing that appears at `path` complete (flushed and synced) or not at all."""

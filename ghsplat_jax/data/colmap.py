@@ -17,7 +17,7 @@ import numpy as np
 
 from ghsplat_jax.core.quaternions import to_rotation_matrix_np
 from ghsplat_jax.data.errors import DatasetError
-from ghsplat_jax.data.frames import Frame, SceneSpec, image_sources, pinhole_K, rigid
+from ghsplat_jax.data.frames import Frame, SceneSpec, check_camera, check_points, image_sources, pinhole_K, rigid
 
 # model id -> (name, number of parameters), from colmap/src/colmap/sensor/models.h
 CAMERA_MODELS = {
@@ -170,14 +170,19 @@ def read_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
             if not line:
                 continue
             parts = line.split(maxsplit=8)
+            if len(parts) < 8:
+                raise _bad_line(path, number, "a point needs POINT3D_ID X Y Z R G B ERROR")
             try:
                 xyz.append([float(v) for v in parts[1:4]])
                 rgb.append([int(v) for v in parts[4:7]])
             except (IndexError, ValueError) as exc:
                 raise _bad_line(path, number, str(exc)) from None
-    xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
+    with np.errstate(over="ignore"):  # doubles beyond float32 become Inf and are refused below
+        xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
     rgb = np.asarray(rgb, np.float32).reshape(-1, 3) / 255.0
-    return xyz, rgb
+    if len(rgb) and not (rgb.min() >= 0 and rgb.max() <= 1):
+        raise DatasetError(f"{path}: point colours outside 0..255")
+    return check_points(xyz, str(path)), rgb
 
 
 def model_file(folder: Path, stem: str) -> Path | None:
@@ -258,7 +263,10 @@ def read_colmap(root: Path, downscale: float, model: Path | None = None) -> Scen
         camera = cameras.get(image.camera_id)
         if camera is None:
             raise DatasetError(f"{where}: refers to camera {image.camera_id}, absent from {cameras_path}")
+        if not (np.all(np.isfinite(image.qvec)) and np.linalg.norm(image.qvec) > 1e-6):
+            raise DatasetError(f"{where}: rotation quaternion {image.qvec.tolist()} is not a rotation")
         K, dist = intrinsics(camera, str(cameras_path))
+        check_camera(K, camera.width, camera.height, dist, f"{cameras_path} (camera {camera.id})")
         frames.append(Frame(
             name=image.name,
             sources=image_sources(folder, image.name, downscale),

@@ -82,6 +82,29 @@ def choose_folder(folder: Path, downscale: float) -> tuple[Path, int]:
     return folders[factors[0]], factors[0]
 
 
+MAX_IMAGE_SIDE = 100_000  # pixels; larger sizes in a camera file are corruption, not photos
+
+
+def check_camera(K: np.ndarray, width, height, dist, where: str) -> None:
+    """A clear error for intrinsics no image can have: a bad size, a non-positive or
+    non-finite focal length, a non-finite principal point or distortion."""
+    if not all(isinstance(v, (int, np.integer)) and 0 < v <= MAX_IMAGE_SIDE for v in (width, height)):
+        raise DatasetError(f"{where}: image size {width!r} x {height!r} is not 1..{MAX_IMAGE_SIDE} pixels")
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        raise DatasetError(f"{where}: intrinsics need finite values and positive focal lengths, got "
+                           f"fx={K[0, 0]!r} fy={K[1, 1]!r} cx={K[0, 2]!r} cy={K[1, 2]!r}")
+    if dist is not None and not np.all(np.isfinite(dist)):
+        raise DatasetError(f"{where}: non-finite distortion coefficients {np.asarray(dist).tolist()}")
+
+
+def check_points(points: np.ndarray, where: str) -> np.ndarray:
+    """The SfM points, refused when any is NaN or Inf (they seed the surfels)."""
+    bad = np.count_nonzero(~np.all(np.isfinite(points), axis=1)) if len(points) else 0
+    if bad:
+        raise DatasetError(f"{where}: {bad} of {len(points)} points have non-finite coordinates")
+    return points
+
+
 def pinhole_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], np.float64)
 

@@ -10,23 +10,46 @@ a centred pinhole and ignore the lens distortion of the COLMAP camera.
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
 
 from ghsplat_jax.data.colmap import model_file, read_points
 from ghsplat_jax.data.errors import DatasetError
-from ghsplat_jax.data.frames import Frame, SceneSpec, choose_folder, invert_rigid, pinhole_K, rigid
+from ghsplat_jax.data.frames import Frame, SceneSpec, check_camera, choose_folder, invert_rigid, pinhole_K, rigid
 from ghsplat_jax.data.images import list_images
 
 
 def load_poses_bounds(path: Path) -> np.ndarray:
     try:
+        with open(path, "rb") as fh:
+            # The .npy header's shape is checked against the file size before numpy
+            # allocates anything from it.
+            fmt = np.lib.format
+            version = fmt.read_magic(fh)
+            if version not in ((1, 0), (2, 0)):
+                raise ValueError(f"unsupported .npy version {version}")
+            # numpy reads the header's declared length in one go: check it against the file first
+            (length,) = struct.unpack("<H" if version == (1, 0) else "<I", fh.read(2 if version == (1, 0) else 4))
+            if length > 10_000 or length > path.stat().st_size:
+                raise ValueError(f"header of {length} bytes")
+            fh.seek(-(2 if version == (1, 0) else 4), 1)
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+            available = path.stat().st_size - fh.tell()
+    except Exception as exc:  # numpy's header parser raises value, syntax and tokenizer errors alike
+        raise DatasetError(f"{path}: cannot read LLFF poses ({type(exc).__name__}: {exc})") from None
+    if len(shape) != 2 or shape[1] != 17 or shape[0] == 0:
+        raise DatasetError(f"{path}: expected an N x 17 array of LLFF poses, got shape {shape}")
+    if dtype.kind not in "fiu" or dtype.hasobject:
+        raise DatasetError(f"{path}: LLFF poses must be numbers, got dtype {dtype}")
+    if available < shape[0] * shape[1] * dtype.itemsize:
+        raise DatasetError(f"{path}: truncated, {available} bytes for a {shape[0]} x 17 {dtype} array")
+    try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
         raise DatasetError(f"{path}: cannot read LLFF poses ({exc})") from None
-    if data.ndim != 2 or data.shape[1] != 17 or len(data) == 0:
-        raise DatasetError(f"{path}: expected an N x 17 array of LLFF poses, got shape {data.shape}")
     return data.astype(np.float64)
 
 
@@ -47,11 +70,16 @@ def read_llff(root: Path, downscale: float) -> SceneSpec:
     frames = []
     for i, (pose, file) in enumerate(zip(poses, files)):
         height, width, focal = pose[:, 4]
+        where = f"{path} (pose {i})"
+        if not (np.isfinite(height) and np.isfinite(width)):
+            raise DatasetError(f"{where}: non-finite image size {width} x {height}")
+        K = pinhole_K(focal, focal, width / 2, height / 2)
+        check_camera(K, int(round(width)), int(round(height)), None, where)
         frames.append(Frame(
             name=file.name,
             sources=[(file, float(factor))],
-            K=pinhole_K(focal, focal, width / 2, height / 2),
-            world_to_cam=llff_to_opencv(pose, f"{path} (pose {i})"),
+            K=K,
+            world_to_cam=llff_to_opencv(pose, where),
             width=int(round(width)),
             height=int(round(height)),
         ))

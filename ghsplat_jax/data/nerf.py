@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.data.errors import DatasetError, DatasetWarning
-from ghsplat_jax.data.frames import Frame, SceneSpec, image_sources, invert_rigid, pinhole_K, rigid
+from ghsplat_jax.data.frames import Frame, SceneSpec, check_camera, image_sources, invert_rigid, pinhole_K, rigid
 from ghsplat_jax.data.images import IMAGE_EXTENSIONS, image_size
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
@@ -40,6 +40,8 @@ def _load_json(path: Path) -> dict:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DatasetError(f"{path}: cannot parse transforms file ({exc})") from None
+    except RecursionError:  # "[[[[..." nested deeper than the parser's stack
+        raise DatasetError(f"{path}: cannot parse transforms file (nested too deeply)") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise DatasetError(f"{path}: not a transforms file (no 'frames' list)")
     return meta
@@ -70,10 +72,15 @@ def _frame(root: Path, json_path: Path, meta: dict, index: int, raw: dict, downs
     where = f"{json_path} (frame {index})"
     if not isinstance(raw, dict) or "file_path" not in raw or "transform_matrix" not in raw:
         raise DatasetError(f"{where}: a frame needs 'file_path' and 'transform_matrix'")
-    path = _resolve(json_path.parent, str(raw["file_path"]))
-    name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
-    sources = _sources(root, path, downscale)
-    existing = [(p, k) for p, k in sources if p.is_file()]
+    if not isinstance(raw["file_path"], str) or "\0" in raw["file_path"]:
+        raise DatasetError(f"{where}: file_path must be a path string, got {raw['file_path']!r}")
+    try:
+        path = _resolve(json_path.parent, raw["file_path"])
+        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        sources = _sources(root, path, downscale)
+        existing = [(p, k) for p, k in sources if p.is_file()]
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise DatasetError(f"{where}: bad file_path {raw['file_path'][:80]!r} ({exc.strerror})") from None
     if not existing:
         return name
 
@@ -103,12 +110,13 @@ def _frame(root: Path, json_path: Path, meta: dict, index: int, raw: dict, downs
         c2w = np.asarray(raw["transform_matrix"], np.float64)
         model = str(get("camera_model", "")).upper()
         fisheye = get("is_fisheye") or model in _FISHEYE or float(get("k4", 0.0))
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, ArithmeticError) as exc:  # ArithmeticError: a zero angle, an Inf size
         raise DatasetError(f"{where}: bad camera value ({exc})") from None
     if fisheye:
         raise DatasetError(f"{where}: fisheye cameras are not supported")
     if c2w.shape not in ((4, 4), (3, 4)):
         raise DatasetError(f"{where}: transform_matrix must be 4x4 or 3x4, got {c2w.shape}")
+    check_camera(K, width, height, dist, where)
     c2w_cv = rigid(c2w[:3, :3] @ _GL_TO_CV, c2w[:3, 3], where)
     return Frame(name, sources, K, invert_rigid(c2w_cv), width, height, dist if dist.any() else None)
 

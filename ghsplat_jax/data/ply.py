@@ -14,6 +14,7 @@ import numpy as np
 
 from ghsplat_jax.core import quaternions
 from ghsplat_jax.core.surfels import Surfels, sh_degree_from_rest
+from ghsplat_jax.data.errors import DatasetError
 from ghsplat_jax.io_utils import atomic_write
 
 _TYPES = {
@@ -25,41 +26,69 @@ _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", 
              "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
-class PlyError(ValueError):
+class PlyError(DatasetError):
     """A PLY file that cannot be read as Gaussians; the message names the file."""
 
 
+_MAX_HEADER_LINES = 10_000  # a real Gaussian PLY header has well under a hundred lines
+
+
+def _header_line(path: Path, number: int, words: list[str], state: dict) -> None:
+    """Apply one header line to `state` (format, vertex count, vertex properties)."""
+    bad = lambda what: PlyError(f"{path}: header line {number}: {what}")
+    if words[0] == "format":
+        if len(words) < 2:
+            raise bad("'format' without a format name")
+        state["format"] = words[1]
+    elif words[0] == "element":
+        if len(words) != 3:
+            raise bad(f"expected 'element NAME COUNT', got {' '.join(words)!r}")
+        state["in_vertex"] = words[1] == "vertex"
+        if state["in_vertex"]:
+            if state["count"] is not None:
+                raise bad("a second 'vertex' element")
+            if not words[2].isdigit():
+                raise bad(f"vertex count {words[2]!r} is not a non-negative integer")
+            state["count"] = int(words[2])
+        elif state["count"] is None:
+            raise bad(f"element '{words[1]}' before 'vertex' is not supported")
+    elif words[0] == "property" and state["in_vertex"]:
+        if len(words) > 1 and words[1] == "list":
+            raise bad(f"list property '{words[-1]}' in vertex element")
+        if len(words) != 3:
+            raise bad(f"expected 'property TYPE NAME', got {' '.join(words)!r}")
+        if words[1] not in _TYPES:
+            raise bad(f"unknown property type '{words[1]}'")
+        if any(name == words[2] for name, _ in state["props"]):
+            raise bad(f"vertex property '{words[2]}' is listed twice")
+        state["props"].append((words[2], _TYPES[words[1]]))
+    elif words[0] not in ("property", "obj_info"):
+        raise bad(f"unknown keyword {words[0]!r}")
+
+
 def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, str]], int]:
-    if fh.readline().strip() != b"ply":
+    if fh.readline(16).strip() != b"ply":
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
-    fmt, count, props, in_vertex = None, None, [], False
-    while True:
-        line = fh.readline()
+    state = {"format": None, "count": None, "props": [], "in_vertex": False}
+    for number in range(2, _MAX_HEADER_LINES):
+        line = fh.readline(4096)
         if not line:
             raise PlyError(f"{path}: truncated header (no end_header)")
         words = line.decode("ascii", "replace").split()
-        if not words or words[0] in ("comment", "obj_info"):
+        if not words or words[0] == "comment":
             continue
         if words[0] == "end_header":
             break
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            in_vertex = words[1] == "vertex"
-            if in_vertex:
-                count = int(words[2])
-            elif count is None:
-                raise PlyError(f"{path}: element '{words[1]}' before 'vertex' is not supported")
-        elif words[0] == "property" and in_vertex:
-            if words[1] == "list":
-                raise PlyError(f"{path}: list property '{words[-1]}' in vertex element")
-            if words[1] not in _TYPES:
-                raise PlyError(f"{path}: unknown property type '{words[1]}'")
-            props.append((words[2], _TYPES[words[1]]))
+        _header_line(path, number, words, state)
+    else:
+        raise PlyError(f"{path}: header longer than {_MAX_HEADER_LINES} lines (no end_header)")
+    fmt, count, props = state["format"], state["count"], state["props"]
     if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
         raise PlyError(f"{path}: unsupported PLY format {fmt!r}")
     if count is None:
         raise PlyError(f"{path}: no vertex element")
+    if not props:
+        raise PlyError(f"{path}: the vertex element has no properties")
     return fmt, count, props, fh.tell()
 
 
@@ -71,33 +100,48 @@ def read_vertices(path: str | os.PathLike) -> np.ndarray:
     with open(path, "rb") as fh:
         fmt, count, props, offset = _parse_header(path, fh)
         if fmt == "ascii":
-            text = fh.read().decode("ascii", "replace").split()
-            need = count * len(props)
-            if len(text) < need:
-                raise PlyError(f"{path}: truncated, {len(text)} of {need} ascii values")
-            flat = np.array(text[:need], np.float64).reshape(count, len(props))
-            out = np.empty(count, [(n, t) for n, t in props])
-            for i, (name, _) in enumerate(props):
-                out[name] = flat[:, i]
-            return out
+            return _read_ascii(path, fh, count, props)
     endian = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(n, endian + t) for n, t in props])
     size = path.stat().st_size - offset
+    # Checked before anything is allocated: a header count never sizes memory on its own.
     if size < count * dtype.itemsize:
         raise PlyError(f"{path}: truncated, {size} bytes of vertex data for {count} vertices "
                        f"of {dtype.itemsize} bytes")
     return np.fromfile(path, dtype=dtype, count=count, offset=offset)
 
 
-def _rest_names(names) -> list[str]:
+def _read_ascii(path: Path, fh, count: int, props: list[tuple[str, str]]) -> np.ndarray:
+    text = fh.read().decode("ascii", "replace").split()
+    need = count * len(props)
+    if len(text) < need:
+        raise PlyError(f"{path}: truncated, {len(text)} of {need} ascii values")
+    try:
+        flat = np.array(text[:need], np.float64).reshape(count, len(props))
+    except ValueError as exc:
+        raise PlyError(f"{path}: bad ascii vertex value ({exc})") from None
+    out = np.empty(count, [(n, t) for n, t in props])
+    with np.errstate(invalid="ignore", over="ignore"):  # out-of-range ints are caught by the finiteness check or wrap
+        for i, (name, _) in enumerate(props):
+            out[name] = flat[:, i]
+    return out
+
+
+def _rest_names(path: Path, names) -> list[str]:
+    """f_rest_0 .. f_rest_{n-1} in index order; any other f_rest_ name is an error."""
     rest = [n for n in names if n.startswith("f_rest_")]
-    return sorted(rest, key=lambda n: int(n.split("_")[-1]))
+    expected = [f"f_rest_{i}" for i in range(len(rest))]
+    if sorted(rest) != sorted(expected):
+        raise PlyError(f"{path}: f_rest properties must be f_rest_0..f_rest_{len(rest) - 1}, got {rest}")
+    return expected
 
 
-def load_ply(path: str | os.PathLike) -> Surfels:
+def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     """Read a 2DGS (or 3DGS) Gaussian PLY into Surfels (numpy float32 fields).
 
-    3DGS files have three scales: the largest two are kept and a warning says so.
+    3DGS files have three scales: the largest two are kept and a warning says so. NaN or Inf
+    values are an error (they must never reach a render) unless `finite=False`, for tools
+    that drop such surfels themselves (`ghsplat export`).
     """
     path = Path(path)
     v = read_vertices(path)
@@ -106,7 +150,9 @@ def load_ply(path: str | os.PathLike) -> Surfels:
     if missing:
         raise PlyError(f"{path}: not a Gaussian PLY, missing properties {missing}")
     col = lambda n: np.asarray(v[n], np.float32)
-    rest_names = _rest_names(names)
+    rest_names = _rest_names(path, names)
+    if finite:
+        _check_finite(path, v, _REQUIRED + rest_names + (["scale_2"] if "scale_2" in names else []))
     if len(rest_names) % 3:
         raise PlyError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3")
     k = len(rest_names) // 3
@@ -130,6 +176,16 @@ def load_ply(path: str | os.PathLike) -> Surfels:
         sh_dc=np.stack([col(f"f_dc_{i}") for i in range(3)], axis=1),
         sh_rest=np.ascontiguousarray(sh_rest),
     )
+
+
+def _check_finite(path: Path, v: np.ndarray, names: list[str]) -> None:
+    """NaN or Inf (also from float64/int values that overflow float32) must never reach a render."""
+    for name in names:
+        with np.errstate(over="ignore", invalid="ignore"):
+            bad = np.count_nonzero(~np.isfinite(np.asarray(v[name], np.float32)))
+        if bad:
+            raise PlyError(f"{path}: {bad} of {len(v)} vertices have a non-finite '{name}' (NaN or Inf); "
+                           "`ghsplat export IN.ply --out OUT.ply` drops such surfels")
 
 
 # Right-multiplied rotations that move a 3DGS Gaussian's smallest axis into the normal slot:

@@ -18,6 +18,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--list", action="store_true", help="list the planned runs and their state, train nothing")
     p.add_argument("--report-only", action="store_true", help="only collect finished runs into the reports")
     p.add_argument("--stop-on-error", action="store_true", help="stop at the first failed run")
+    g = p.add_argument_group("executor")
+    g.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: one run after another here (default); ray: one Ray task per run "
+                        '(pip install -e ".[ray]")')
+    g.add_argument("--address", metavar="ADDR",
+                   help="Ray cluster to use: 'auto' (this machine's cluster), 'ray://HEAD:10001' (remote "
+                        "head); default: start a local Ray instance")
+    g.add_argument("--cpus-per-run", type=float, help="Ray: CPUs each run reserves (default 1)")
+    g.add_argument("--gpus-per-run", type=float,
+                   help="Ray: GPUs each run reserves (default 1 when the cluster has GPUs, else 0)")
 
 
 def main(args) -> int:
@@ -38,7 +48,18 @@ def main(args) -> int:
             print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
                   f"strategy={r.config.strategy})")
         return 0
-    result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only)
+    if args.executor != "ray" and (args.address or args.cpus_per_run or args.gpus_per_run):
+        print("ghsplat run: --address, --cpus-per-run and --gpus-per-run need --executor ray", file=sys.stderr)
+        return 2
+    ray_options = {"address": args.address, "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run}
+    if args.executor == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            print('ghsplat run: --executor ray needs Ray: pip install -e ".[ray]"', file=sys.stderr)
+            return 2
+    result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
+                            executor=args.executor, ray_options=ray_options)
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
     print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))

@@ -54,8 +54,14 @@ class Experiment:
     source: Path
 
 
+def _table(value, what: str, source) -> dict:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{source}: {what} must be a table, got {value!r}")
+    return value
+
+
 def _name(entry: dict, kind: str, i: int, source) -> str:
-    name = entry.get("name")
+    name = _table(entry, f"{kind}[{i}]", source).get("name")
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
     return name
@@ -70,17 +76,22 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
         spec = tomllib.loads(path.read_text())
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read experiment ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     unknown = set(spec) - {"name", "description", "output", "train", "scenes", "variants"}
     if unknown:
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
     name = spec.get("name", path.stem)
+    for key in ("name", "description", "output"):
+        if not isinstance(spec.get(key, ""), str):
+            raise ConfigError(f"{path}: '{key}' must be a string, got {spec[key]!r}")
     scenes = spec.get("scenes")
     if not isinstance(scenes, list) or not scenes:
         raise ConfigError(f"{path}: an experiment needs at least one [[scenes]] entry")
     variants = spec.get("variants") or [{"name": "default"}]
-    base = apply_overrides(TrainConfig(), spec.get("train", {}), f"{path} [train]")
+    if not isinstance(variants, list):
+        raise ConfigError(f"{path}: 'variants' must be an array of tables ([[variants]])")
+    base = apply_overrides(TrainConfig(), _table(spec.get("train", {}), "[train]", path), f"{path} [train]")
     out_root = Path(output or spec.get("output") or Path("runs") / name)
     runs = []
     seen = set()
@@ -94,8 +105,9 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
                 raise ConfigError(f"{path}: run {sname}/{vname} appears twice")
             seen.add((sname, vname))
             where = f"{path} scene {sname!r} variant {vname!r}"
-            cfg = apply_overrides(base, dict(scene.get("train", {}), data=scene["data"]), where)
-            cfg = apply_overrides(cfg, variant.get("train", {}), where)
+            scene_train = _table(scene.get("train", {}), f"scene {sname!r} train", path)
+            cfg = apply_overrides(base, dict(scene_train, data=scene["data"]), where)
+            cfg = apply_overrides(cfg, _table(variant.get("train", {}), f"variant {vname!r} train", path), where)
             if overrides:
                 cfg = apply_overrides(cfg, overrides, "command line")
             runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
@@ -110,6 +122,11 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     from ghsplat_jax.train import train
     from ghsplat_jax.train.run_dir import load_training_data
 
+    if resume:  # a process killed mid-write leaves scratch folders beside the outputs
+        from ghsplat_jax.io_utils import remove_scratch
+
+        for p in remove_scratch(out_dir):
+            log.info("removed %s, left by an interrupted write", p)
     dataset = dataset if dataset is not None else load_training_data(config)
     result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
     if not evaluate or result.steps < config.resolved().steps:
@@ -117,31 +134,56 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
 
 
-def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
-                   evaluate_only: bool = False) -> dict:
-    """Train every unfinished run (resuming interrupted ones), then write the reports.
-    Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+def run_one(run: PlannedRun) -> str | None:
+    """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
+    when interrupted. Returns None, or the error text (one broken scene must not stop the set).
+    The executors (local, Ray) both call this, so a run behaves the same wherever it runs."""
+    if run.finished:
+        log.info("%s/%s: finished, skipped", run.scene, run.variant)
+        return None
+    log.info("%s/%s: training into %s", run.scene, run.variant, run.out_dir)
+    try:
+        train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        msg = f"{type(exc).__name__}: {exc}"
+        log.error("%s/%s failed: %s", run.scene, run.variant, msg)
+        log.debug(traceback.format_exc())
+        return msg
+    return None
+
+
+def _run_locally(runs: list[PlannedRun], stop_on_error: bool) -> list[tuple[str, str]]:
     failed = []
-    for r in exp.runs:
-        if only and r.scene not in only and f"{r.scene}/{r.variant}" not in only:
-            continue
-        if r.finished:
-            log.info("%s/%s: finished, skipped", r.scene, r.variant)
-            continue
-        if evaluate_only:
-            continue
-        log.info("%s/%s: training into %s", r.scene, r.variant, r.out_dir)
-        try:
-            train_and_evaluate(r.config, r.out_dir, resume=has_checkpoint(r.out_dir))
-        except KeyboardInterrupt:
-            raise
-        except Exception as exc:  # one broken scene must not stop the set
-            msg = f"{type(exc).__name__}: {exc}"
-            log.error("%s/%s failed: %s", r.scene, r.variant, msg)
-            log.debug(traceback.format_exc())
+    for r in runs:
+        msg = run_one(r)
+        if msg is not None:
             failed.append((f"{r.scene}/{r.variant}", msg))
             if stop_on_error:
-                raise
+                break
+    return failed
+
+
+def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
+                   evaluate_only: bool = False, executor: str = "local", ray_options: dict | None = None) -> dict:
+    """Train every unfinished run (resuming interrupted ones), then write the reports.
+    executor: "local" (one run after another in this process) or "ray" (one Ray task per run,
+    see eval/ray_executor.py; `ray_options` are its keyword arguments).
+    Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+    selected = [r for r in exp.runs if not only or r.scene in only or f"{r.scene}/{r.variant}" in only]
+    todo = [] if evaluate_only else [r for r in selected if not r.finished]
+    for r in selected:
+        if r.finished:
+            log.info("%s/%s: finished, skipped", r.scene, r.variant)
+    if executor == "local":
+        failed = _run_locally(todo, stop_on_error)
+    elif executor == "ray":
+        from ghsplat_jax.eval.ray_executor import run_on_ray
+
+        failed = run_on_ray(todo, run_one, stop_on_error=stop_on_error, **(ray_options or {})) if todo else []
+    else:
+        raise ValueError(f"unknown executor {executor!r} (local or ray)")
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
 

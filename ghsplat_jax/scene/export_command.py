@@ -77,7 +77,8 @@ def run(args) -> dict:
     from ghsplat_jax.scene import edit, merge, stats, transform
     from ghsplat_jax.data.ply import save_ply
 
-    parts, names = merge.load_many(args.inputs, allow_mixed_3dgs=args.allow_3dgs_mix)
+    # non-finite surfels are loaded here only to be dropped below, with a warning
+    parts, names = merge.load_many(args.inputs, allow_mixed_3dgs=args.allow_3dgs_mix, finite=False)
     s = merge.merge(parts, args.sh_policy, names, degree=args.sh_degree)
     keep = np.ones(s.num, bool)
 

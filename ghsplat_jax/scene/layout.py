@@ -115,7 +115,28 @@ def _vec(ctx: str, value, n: int = 3) -> tuple:
     return tuple(float(v) for v in arr)
 
 
+def _num(ctx: str, value, positive: bool = False) -> float:
+    """A finite number (TOML spells nan and inf; neither places anything)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise LayoutError(f"{ctx}: expected a finite number, got {value!r}")
+    if positive and not value > 0:
+        raise LayoutError(f"{ctx}: must be positive, got {value!r}")
+    return float(value)
+
+
+def _count(ctx: str, value, most: int) -> int:
+    """A whole number 1..most: copies and subdivisions multiply memory, so they are bounded."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+        raise LayoutError(f"{ctx}: expected an integer from 1 to {most}, got {value!r}")
+    return value
+
+
+MAX_REPEAT = 10_000  # copies of one segment along a row
+
+
 def _known(ctx: str, table: dict, keys: set) -> None:
+    if not isinstance(table, dict):
+        raise LayoutError(f"{ctx}: expected a table, got {table!r}")
     unknown = set(table) - keys
     if unknown:
         raise LayoutError(f"{ctx}: unknown keys {sorted(unknown)} (allowed: {sorted(keys)})")
@@ -132,11 +153,18 @@ _TOP_KEYS = {"sh_degree", "sh_policy", "overlap", "allow_3dgs", "configuration",
              "surfaces", "markers", "configurations"}
 
 
+def _list(ctx: str, data: dict, key: str) -> list:
+    value = data.get(key, [])
+    if not isinstance(value, list):
+        raise LayoutError(f"{ctx}: '{key}' must be an array of tables ([[{key}]]), got {value!r}")
+    return value
+
+
 def _row(ctx: str, t: dict, base: Path, index: int) -> Row:
     _known(ctx, t, _ROW_KEYS)
-    if "source" not in t:
-        raise LayoutError(f"{ctx}: missing 'source'")
-    scale = float(t.get("scale", 1.0))
+    if not isinstance(t.get("source"), str) or "\0" in t["source"]:
+        raise LayoutError(f"{ctx}: 'source' must be a path to a PLY file, got {t.get('source')!r}")
+    scale = _num(f"{ctx}.scale", t.get("scale", 1.0))
     if "scale_from_length" in t:
         from ghsplat_jax.scene.transform import scale_from_length
 
@@ -151,20 +179,18 @@ def _row(ctx: str, t: dict, base: Path, index: int) -> Row:
     mirror = "y" if mirror is True else (None if mirror is False else mirror)
     if mirror not in (None, "x", "y"):
         raise LayoutError(f"{ctx}: mirror must be true/false, 'x' or 'y', got {mirror!r}")
-    repeat = t.get("repeat", 1)
-    if not isinstance(repeat, int) or repeat < 1:
-        raise LayoutError(f"{ctx}: repeat must be a positive integer, got {repeat!r}")
+    repeat = _count(f"{ctx}.repeat", t.get("repeat", 1), MAX_REPEAT)
     crop = t.get("crop_box")
     if crop is not None:
-        if len(crop) != 2:
+        if not isinstance(crop, list) or len(crop) != 2:
             raise LayoutError(f"{ctx}.crop_box: expected [[xmin,ymin,zmin],[xmax,ymax,zmax]]")
         crop = (_vec(f"{ctx}.crop_box", crop[0]), _vec(f"{ctx}.crop_box", crop[1]))
     spacing = t.get("spacing")
     return Row(name=str(t.get("name", f"row{index}")), source=(base / t["source"]).resolve(), scale=scale,
                position=_vec(f"{ctx}.position", t.get("position", (0, 0, 0))),
-               yaw_deg=float(t.get("yaw_deg", 0.0)), mirror=mirror, repeat=repeat,
-               spacing=None if spacing is None else float(spacing), crop_box=crop,
-               min_opacity=float(t.get("min_opacity", 0.0)))
+               yaw_deg=_num(f"{ctx}.yaw_deg", t.get("yaw_deg", 0.0)), mirror=mirror, repeat=repeat,
+               spacing=None if spacing is None else _num(f"{ctx}.spacing", spacing, positive=True), crop_box=crop,
+               min_opacity=_num(f"{ctx}.min_opacity", t.get("min_opacity", 0.0)))
 
 
 def _surface(ctx: str, t: dict, base: Path) -> SurfaceSpec:
@@ -184,9 +210,7 @@ def _surface(ctx: str, t: dict, base: Path) -> SurfaceSpec:
         params = {"path": (base / t["path"]).resolve()}
     else:
         raise LayoutError(f"{ctx}: kind must be 'box', 'plane' or 'mesh', got {kind!r}")
-    spacing = float(t.get("spacing", 0.02))
-    if not spacing > 0:
-        raise LayoutError(f"{ctx}: spacing must be positive")
+    spacing = _num(f"{ctx}.spacing", t.get("spacing", 0.02), positive=True)
     colour = t.get("colour", t.get("color"))
     sources = [k for k in ("colour", "texture", "ground_from") if (colour if k == "colour" else t.get(k)) is not None]
     if len(sources) > 1:
@@ -198,8 +222,9 @@ def _surface(ctx: str, t: dict, base: Path) -> SurfaceSpec:
         texture=(base / t["texture"]).resolve() if "texture" in t else None,
         texture_size=_vec(f"{ctx}.texture_size", t.get("texture_size", (1.0, 1.0)), 2),
         ground_from=t.get("ground_from"),
-        ground_max_height=None if "ground_max_height" not in t else float(t["ground_max_height"]),
-        overlap=None if "overlap" not in t else float(t["overlap"]))
+        ground_max_height=None if "ground_max_height" not in t else _num(f"{ctx}.ground_max_height",
+                                                                         t["ground_max_height"]),
+        overlap=None if "overlap" not in t else _num(f"{ctx}.overlap", t["overlap"]))
 
 
 def _marker(ctx: str, t: dict) -> MarkerSpec:
@@ -212,16 +237,20 @@ def _marker(ctx: str, t: dict) -> MarkerSpec:
     if "euler_deg" in t and "facing" in t:
         raise LayoutError(f"{ctx}: give 'facing' or 'euler_deg', not both")
     try:
-        pose = tag_pose(_vec(f"{ctx}.position", t["position"]),
-                        facing=t.get("facing"), up=t.get("up", (0.0, 0.0, 1.0)),
-                        euler_deg=t.get("euler_deg"))
+        optional = {k: _vec(f"{ctx}.{k}", t[k]) for k in ("facing", "up", "euler_deg") if k in t}
+        pose = tag_pose(_vec(f"{ctx}.position", t["position"]), facing=optional.get("facing"),
+                        up=optional.get("up", (0.0, 0.0, 1.0)), euler_deg=optional.get("euler_deg"))
+        if not np.all(np.isfinite(pose)):
+            raise ValueError("facing and up must be non-zero and not parallel")
     except ValueError as exc:
         raise LayoutError(f"{ctx}: {exc}") from None
     backing = t.get("backing", False)
     backing = {} if backing is True else (None if backing is False else dict(backing))
-    return MarkerSpec(id=int(t["id"]), size=float(t["size"]), world_from_tag=pose,
-                      quiet_zone=float(t.get("quiet_zone", 1.0)), subdiv=int(t.get("subdiv", 4)),
-                      backing=backing)
+    if isinstance(t["id"], bool) or not isinstance(t["id"], int) or not 0 <= t["id"] < 2**31:
+        raise LayoutError(f"{ctx}.id: expected a non-negative integer, got {t['id']!r}")
+    return MarkerSpec(id=t["id"], size=_num(f"{ctx}.size", t["size"], positive=True), world_from_tag=pose,
+                      quiet_zone=_num(f"{ctx}.quiet_zone", t.get("quiet_zone", 1.0)),
+                      subdiv=_count(f"{ctx}.subdiv", t.get("subdiv", 4), 64), backing=backing)
 
 
 def _apply_configuration(ctx: str, rows: list[Row], config: dict) -> list[Row]:
@@ -229,6 +258,8 @@ def _apply_configuration(ctx: str, rows: list[Row], config: dict) -> list[Row]:
     _known(ctx, config, _CONFIG_KEYS)
     by_name = {r.name: r for r in rows}
     names = config.get("rows", [r.name for r in rows])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise LayoutError(f"{ctx}.rows: expected a list of row names, got {names!r}")
     missing = [n for n in names if n not in by_name]
     if missing:
         raise LayoutError(f"{ctx}: unknown rows {missing} (known: {sorted(by_name)})")
@@ -238,13 +269,12 @@ def _apply_configuration(ctx: str, rows: list[Row], config: dict) -> list[Row]:
         r = by_name[name]
         changes = {"name": f"{name}#{i}" if names.count(name) > 1 else name}
         if "row_spacing" in config:
-            changes["position"] = (r.position[0], y0 + i * float(config["row_spacing"]), r.position[2])
+            changes["position"] = (r.position[0], y0 + i * _num(f"{ctx}.row_spacing", config["row_spacing"]),
+                                   r.position[2])
         if "repeat" in config:
-            changes["repeat"] = int(config["repeat"])
-            if changes["repeat"] < 1:
-                raise LayoutError(f"{ctx}: repeat must be >= 1")
+            changes["repeat"] = _count(f"{ctx}.repeat", config["repeat"], MAX_REPEAT)
         if "segment_gap" in config:
-            changes["spacing"], changes["gap"] = None, float(config["segment_gap"])
+            changes["spacing"], changes["gap"] = None, _num(f"{ctx}.segment_gap", config["segment_gap"])
         out.append(dataclasses.replace(r, **changes))
     return out
 
@@ -264,30 +294,33 @@ def load_layout(path: str | os.PathLike, configuration: str | None = None) -> La
     ctx = str(path)
     try:
         _known(ctx, data, _TOP_KEYS)
-        rows = [_row(f"{ctx} rows[{i}]", t, base, i) for i, t in enumerate(data.get("rows", []))]
+        rows = [_row(f"{ctx} rows[{i}]", t, base, i) for i, t in enumerate(_list(ctx, data, "rows"))]
         names = [r.name for r in rows]
         if len(set(names)) != len(names):
             raise LayoutError(f"{ctx}: duplicate row names {names}")
-        surfaces = [_surface(f"{ctx} surfaces[{i}]", t, base) for i, t in enumerate(data.get("surfaces", []))]
-        markers = [_marker(f"{ctx} markers[{i}]", t) for i, t in enumerate(data.get("markers", []))]
-    except (TypeError, KeyError) as exc:
+        surfaces = [_surface(f"{ctx} surfaces[{i}]", t, base) for i, t in enumerate(_list(ctx, data, "surfaces"))]
+        markers = [_marker(f"{ctx} markers[{i}]", t) for i, t in enumerate(_list(ctx, data, "markers"))]
+        ids = [m.id for m in markers]
+        if len(set(ids)) != len(ids):
+            raise LayoutError(f"{ctx}: duplicate marker ids {sorted(ids)}")
+        configuration = configuration or data.get("configuration")
+        if configuration is not None:
+            configs = data.get("configurations", {})
+            if not isinstance(configs, dict) or not isinstance(configuration, str) or configuration not in configs:
+                have = sorted(configs) if isinstance(configs, dict) else configs
+                raise LayoutError(f"{ctx}: no configuration {configuration!r} (have {have})")
+            rows = _apply_configuration(f"{ctx} configurations.{configuration}", rows, configs[configuration])
+        # a ground_from that is not a row name is a PLY path
+        surfaces = [dataclasses.replace(s, ground_from=str((base / s.ground_from).resolve()))
+                    if s.ground_from is not None and s.ground_from not in names else s for s in surfaces]
+        files = [r.source for r in rows] + [s.texture for s in surfaces if s.texture]
+        files += [s.params["path"] for s in surfaces if s.kind == "mesh"]
+        files += [Path(s.ground_from) for s in surfaces if s.ground_from and s.ground_from not in names]
+        missing = sorted({str(f) for f in files if not Path(f).is_file()})
+    except LayoutError:
+        raise
+    except (TypeError, KeyError, ValueError, OverflowError, OSError) as exc:  # OSError: a path too long
         raise LayoutError(f"{ctx}: malformed entry ({exc!r})") from None
-    ids = [m.id for m in markers]
-    if len(set(ids)) != len(ids):
-        raise LayoutError(f"{ctx}: duplicate marker ids {sorted(ids)}")
-    configuration = configuration or data.get("configuration")
-    if configuration is not None:
-        configs = data.get("configurations", {})
-        if configuration not in configs:
-            raise LayoutError(f"{ctx}: no configuration {configuration!r} (have {sorted(configs)})")
-        rows = _apply_configuration(f"{ctx} configurations.{configuration}", rows, configs[configuration])
-    # a ground_from that is not a row name is a PLY path
-    surfaces = [dataclasses.replace(s, ground_from=str((base / s.ground_from).resolve()))
-                if s.ground_from is not None and s.ground_from not in names else s for s in surfaces]
-    files = [r.source for r in rows] + [s.texture for s in surfaces if s.texture]
-    files += [s.params["path"] for s in surfaces if s.kind == "mesh"]
-    files += [Path(s.ground_from) for s in surfaces if s.ground_from and s.ground_from not in names]
-    missing = sorted({str(f) for f in files if not Path(f).is_file()})
     if missing:
         raise LayoutError(f"{ctx}: missing files: {', '.join(missing)}")
     policy = data.get("sh_policy", "pad")
@@ -295,7 +328,7 @@ def load_layout(path: str | os.PathLike, configuration: str | None = None) -> La
     if policy not in ("pad", "truncate") or overlap not in ("error", "warn"):
         raise LayoutError(f"{ctx}: sh_policy must be pad|truncate and overlap error|warn")
     degree = data.get("sh_degree")
-    if degree is not None and degree not in (0, 1, 2, 3):
+    if degree is not None and (isinstance(degree, bool) or degree not in (0, 1, 2, 3)):
         raise LayoutError(f"{ctx}: sh_degree must be 0-3")
     return Layout(path=path, rows=rows, surfaces=surfaces, markers=markers, sh_degree=degree,
                   sh_policy=policy, overlap=overlap, allow_3dgs=bool(data.get("allow_3dgs", False)))

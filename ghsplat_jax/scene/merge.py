@@ -59,9 +59,10 @@ def merge(parts: list[Surfels], policy: str = "pad", names: list[str] | None = N
                      for f in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")))
 
 
-def load_many(paths: list[str | os.PathLike], allow_mixed_3dgs: bool = False
+def load_many(paths: list[str | os.PathLike], allow_mixed_3dgs: bool = False, finite: bool = True
               ) -> tuple[list[Surfels], list[str]]:
-    """Load PLYs; 3DGS files mixed with 2DGS ones raise MixedFormatError unless allowed."""
+    """Load PLYs; 3DGS files mixed with 2DGS ones raise MixedFormatError unless allowed.
+    `finite=False` also loads surfels with NaN or Inf values (for callers that drop them)."""
     from ghsplat_jax.data.ply import is_3dgs_file, load_ply
 
     paths = [Path(p) for p in paths]
@@ -73,4 +74,4 @@ def load_many(paths: list[str | os.PathLike], allow_mixed_3dgs: bool = False
             f"their third axis is dropped on read, so pass the explicit flag to merge anyway")
     with warnings.catch_warnings():
         warnings.simplefilter("always")
-        return [load_ply(p) for p in paths], [str(p) for p in paths]
+        return [load_ply(p, finite) for p in paths], [str(p) for p in paths]

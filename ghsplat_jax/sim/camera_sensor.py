@@ -46,7 +46,7 @@ class CameraModel:
 
     @classmethod
     def from_camera_info(cls, msg) -> "CameraModel":
-        if any(abs(float(v)) > 1e-12 for v in msg.d):
+        if not all(abs(float(v)) <= 1e-12 for v in msg.d):  # NaN fails this test too
             raise ValueError("only undistorted cameras can be rendered (D must be zero)")
         return cls(msg.header.frame_id, int(msg.width), int(msg.height), tuple(float(v) for v in msg.k))
 

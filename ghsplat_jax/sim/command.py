@@ -46,8 +46,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--any-interface", action="store_true",
                    help="--live: use Cyclone's default network setup instead of loopback only")
     p.add_argument("--real-time", type=float, default=1.0, metavar="FACTOR",
-                   help="--live: pace simulated time at FACTOR x wall clock (0: as fast as possible)")
-    p.add_argument("--linger", type=float, default=0.0, help="keep serving (--live) or showing (--viewer) this many seconds after the trajectory")
+                   help="--live, --foxglove: pace simulated time at FACTOR x wall clock (0: as fast as possible)")
+    p.add_argument("--linger", type=float, default=0.0, help="keep serving (--live, --foxglove) or showing (--viewer) this many seconds after the trajectory")
+    p.add_argument("--foxglove", action="store_true",
+                   help="serve the topics to Foxglove over its WebSocket protocol (pip install -e \".[foxglove]\")")
+    p.add_argument("--port", type=int, default=8765, help="--foxglove: WebSocket port")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="--foxglove: address to bind (default loopback only; 0.0.0.0 serves other machines)")
     p.add_argument("--viewer", action="store_true", help="show scene, robot, image and LiDAR in a viser web viewer")
     p.add_argument("--viewer-port", type=int, default=8080)
     p.add_argument("--quiet", action="store_true")
@@ -78,8 +83,13 @@ def main(args) -> int:
 
             if bag_dir(args.record).exists() and not args.overwrite:
                 raise FileExistsError(f"{bag_dir(args.record)}: already exists (use --overwrite)")
-        if not (args.record or args.live or args.viewer):
-            raise ValueError("nothing to do: give --record, --live and/or --viewer")
+        if not (args.record or args.live or args.viewer or args.foxglove):
+            raise ValueError("nothing to do: give --record, --live, --foxglove and/or --viewer")
+        if args.foxglove:
+            try:
+                import foxglove  # noqa: F401
+            except ImportError:
+                raise ValueError('--foxglove needs foxglove-sdk: pip install -e ".[foxglove]"') from None
     except (ValueError, FileNotFoundError, FileExistsError, tomllib.TOMLDecodeError, OSError) as exc:
         print(f"ghsplat simulate: error: {exc}", file=sys.stderr)
         return 2
@@ -99,7 +109,7 @@ def main(args) -> int:
                              normals=args.normals, organised_cloud=args.organised)
     renderer = CameraRenderer(raster_config=raster)
     sinks = []
-    recorder = node = viewer = bar = None
+    recorder = node = viewer = bar = fox = None
     try:
         if args.record:
             from ghsplat_jax.sim.recorder import BagRecorder
@@ -114,6 +124,12 @@ def main(args) -> int:
                            publish_depth=args.depth, organised_cloud=args.organised)
             sinks.append(_live_sink(node))
             say(f"live on DDS domain {args.domain_id} ({'any interface' if args.any_interface else 'loopback only'})")
+        if args.foxglove:
+            from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
+
+            fox = FoxgloveSink(host=args.host, port=args.port)
+            sinks.append(fox.sink)
+            say(f"Foxglove WebSocket at ws://{args.host}:{fox.port}")
         if args.viewer:
             from ghsplat_jax.sim.viewer import SimViewer
 
@@ -129,7 +145,7 @@ def main(args) -> int:
 
         for topic, msg, t, payload in simulate.run(scene.surfels, robot, traj, cfg, camera, lidar,
                                                    renderer, progress):
-            if args.live and args.real_time > 0:
+            if (args.live or args.foxglove) and args.real_time > 0:
                 simulate.pace(start_wall, cfg.clock_start, t, args.real_time)
             for sink in sinks:
                 sink(topic, msg, t, payload)
@@ -138,7 +154,7 @@ def main(args) -> int:
             counts[topic] = counts.get(topic, 0) + 1
         if node is not None and args.linger > 0:
             node.spin(args.linger)
-        elif viewer is not None and args.linger > 0:
+        elif (viewer is not None or fox is not None) and args.linger > 0:
             time.sleep(args.linger)
     except KeyboardInterrupt:
         say("interrupted")
@@ -156,6 +172,8 @@ def main(args) -> int:
             node.close()
         if viewer is not None:
             viewer.close()
+        if fox is not None:
+            fox.close()
     say("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) +
         f"; camera compilations {renderer.traces}, LiDAR compilations {lidar.traces if lidar else 0}")
     return 0

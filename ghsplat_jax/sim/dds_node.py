@@ -30,6 +30,7 @@ import numpy as np
 
 from ghsplat_jax.sim import dds_types as D
 from ghsplat_jax.sim import frames, messages
+from ghsplat_jax.sim.messages import MessageError
 from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
 
 log = logging.getLogger("ghsplat.sim.node")
@@ -129,10 +130,9 @@ class SimNode:
     # ------------------------------------------------------------------ registration
     def _register(self, req: D.SetCameraInfo_Request_) -> tuple[bool, str]:
         try:
-            info = D.request_body(req).camera_info
-            model = CameraModel.from_camera_info(info)
-        except Exception as exc:
-            return False, f"bad camera info: {exc}"
+            model = camera_from_request(req)
+        except MessageError as exc:
+            return False, str(exc)
         if model.frame_id in (self.map_frame, self.lidar_frame):
             return False, f"frame {model.frame_id!r} is reserved"
         old = self.cameras.get(model.frame_id)
@@ -160,12 +160,9 @@ class SimNode:
     # ------------------------------------------------------------------------ poses
     def _valid_pose(self, sample) -> tuple[str, np.ndarray, float] | None:
         try:
-            frame = sample.header.frame_id
-            t = sample.header.stamp.sec + sample.header.stamp.nanosec * 1e-9
-            p, q = sample.pose.position, sample.pose.orientation
-            T = frames.from_pose([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
-        except ValueError as exc:
-            log.warning("ignored pose for %r: %s", getattr(sample.header, "frame_id", "?"), exc)
+            frame, T, t = pose_from_sample(sample)
+        except MessageError as exc:
+            log.warning("ignored pose: %s", exc)
             self.counts["rejected"] += 1
             return None
         if frame not in self.cameras and not (frame == self.lidar_frame and self.lidar is not None):
@@ -229,6 +226,29 @@ class SimNode:
     def close(self) -> None:
         self.io = None
         self.dp = None
+
+
+def pose_from_sample(sample, topic: str = "/camera_pose") -> tuple[str, np.ndarray, float]:
+    """(frame id, 4x4 pose in the map, stamp in seconds) of a received PoseStamped_, or
+    MessageError: NaN, a non-unit quaternion or a negative stamp never reach a render."""
+    try:
+        frame = sample.header.frame_id
+        stamp = sample.header.stamp
+        if not (isinstance(frame, str) and frame) or stamp.sec < 0 or not 0 <= stamp.nanosec < 1_000_000_000:
+            raise ValueError(f"bad header (frame {frame!r}, stamp {stamp.sec}.{stamp.nanosec})")
+        p, q = sample.pose.position, sample.pose.orientation
+        T = frames.from_pose([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise MessageError(f"{topic}: {exc}") from None
+    return frame, T, stamp.sec + stamp.nanosec * 1e-9
+
+
+def camera_from_request(req: D.SetCameraInfo_Request_, topic: str = "/register_camera") -> CameraModel:
+    """The camera a registration request defines, or MessageError saying why not."""
+    try:
+        return CameraModel.from_camera_info(D.request_body(req).camera_info)
+    except (ValueError, TypeError, AttributeError, OverflowError) as exc:
+        raise MessageError(f"{topic}: bad camera info: {exc}") from None
 
 
 def cloud_message(scan, frame_id: str, organised: bool = False):

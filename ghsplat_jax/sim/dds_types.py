@@ -177,6 +177,17 @@ def _convert(value):
     return value
 
 
+def decode(cls: type[IdlStruct], data: bytes, topic: str) -> IdlStruct:
+    """Received CDR bytes -> an IDL struct, or MessageError naming the topic. Lengths inside
+    the bytes are checked against the buffer by the deserialiser before anything is sized."""
+    from ghsplat_jax.sim.messages import MessageError
+
+    try:
+        return cls.deserialize(bytes(data))
+    except Exception as exc:  # the deserialiser raises struct, index, unicode and type errors alike
+        raise MessageError(f"{topic}: malformed {cls.__name__.rstrip('_')} ({type(exc).__name__}: {exc})") from None
+
+
 def to_dds(msg) -> IdlStruct:
     """rosbags message -> the IDL struct of the same type, field by field."""
     cls = IDL_OF_MSGTYPE[msg.__msgtype__]

@@ -15,6 +15,10 @@ from ghsplat_jax.sim import frames
 
 # The service /register_camera uses the standard sensor_msgs/srv/SetCameraInfo; rosbags
 # ships message types only, so its request and response are registered as messages.
+class MessageError(ValueError):
+    """An incoming message that cannot be used; the text names the topic and the problem."""
+
+
 SET_CAMERA_INFO_REQUEST = "sensor_msgs/srv/SetCameraInfo_Request"
 SET_CAMERA_INFO_RESPONSE = "sensor_msgs/srv/SetCameraInfo_Response"
 _SRV_DEFS = {

@@ -124,11 +124,14 @@ def write_colmap_text(folder: Path, cameras, names, points, colours, tracks) -> 
 
 
 def transforms_json(cameras, names, times=None, extra_paths=None) -> dict:
-    """NeRF transforms.json: shared intrinsics at the top when all cameras agree, else per frame."""
+    """NeRF transforms.json in nerfstudio's rules: shared intrinsics at the top when all cameras
+    agree, else per frame; `applied_transform` (3x4) is identity because the poses are written
+    in the scene's own world frame, the one the COLMAP model and tags.json use."""
     keys = [_intrinsics_key(c) for c in cameras]
     fields = ("w", "h", "fl_x", "fl_y", "cx", "cy")
     shared = len(set(keys)) == 1
-    out = {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    out = {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+           "applied_transform": np.eye(4)[:3].tolist()}
     if shared:
         out.update(dict(zip(fields, keys[0])))
     frames = []

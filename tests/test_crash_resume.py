@@ -1,0 +1,27 @@
+"""A training process killed with SIGKILL at seeded random moments, some of them in the middle
+of a checkpoint write, always leaves a run folder that `ghsplat train --resume` continues to the
+end (benchmarks/crash_resume.py: the real `ghsplat train` in a subprocess; the full benchmark
+kills it 20 times)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+
+def _benchmark():
+    path = Path(__file__).parents[1] / "benchmarks" / "crash_resume.py"
+    spec = importlib.util.spec_from_file_location("crash_resume", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sigkill_at_random_moments_always_resumes(tmp_path):
+    bench = _benchmark()
+    data, config = bench.tiny_run_inputs(tmp_path, steps=40, checkpoint_every=4)
+    res = bench.kill_and_resume(data, config, tmp_path / "run",
+                                ["any", "checkpoint", "training", "checkpoint"], 40, 4)
+    assert res["resumed_to_the_end"]
+    assert sum(k["mid_checkpoint_write"] for k in res["kills"]) >= 2
+    assert any(k["checkpoint_step"] > 0 for k in res["kills"])  # some kills landed after a checkpoint

@@ -1,0 +1,32 @@
+"""The soak benchmark's property at small scale: resident memory stays flat over a long
+simulation with a bag recorded and a Foxglove server attached (analytic renderer, so it is
+quick). benchmarks/sim_soak.py measures the full 10,000 frames with the rasterizer."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("psutil")
+
+from test_sim_fakes import box_room_renderer
+
+
+def _benchmark():
+    path = Path(__file__).parents[1] / "benchmarks" / "sim_soak.py"
+    spec = importlib.util.spec_from_file_location("sim_soak", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_memory_stays_flat_over_a_long_simulation():
+    foxglove = importlib.util.find_spec("foxglove") is not None
+    res = _benchmark().soak(frames=1500, rate=100.0, surfels=None, width=32, height=24, lidar_face_width=48,
+                            foxglove=foxglove, sample_every=25, warmup=300,
+                            render_fn=box_room_renderer(lo=(-10.0, -10.0, -1.0), hi=(30.0, 10.0, 3.0)))
+    assert res["frames"] == 1500 and res["lidar_scans"] == 150
+    assert res["camera_compilations"] == 1 and res["lidar_compilations"] == 1  # no per-frame recompilation
+    assert res["growth"] <= 0.05, res["samples"]
