@@ -221,10 +221,12 @@ def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
     # Filter branch: rho = 2 |x - c|^2, z = centre depth.
     g_filter = jnp.where(hit, 0.0, g_rho)
     g_depth = jnp.where(hit, 0.0, d_z)
-    planes = jnp.stack([g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter])   # (7, K, B, P)
-    # Sums over pixels against [1, dx, dy]; dx = ox + x_local, so one matmul with the local basis.
+    # Sums over pixels against [1, dx, dy]; dx = ox + x_local, so a matmul with the local basis.
+    # One per plane: stacking the planes first makes XLA:CPU emit one unvectorised loop that
+    # picks a plane per element, which cost more than all the rest of the backward.
     xl, yl = _local_pixels(st.tile_size)
-    s = planes @ jnp.stack([jnp.ones_like(xl), xl, yl], axis=1)          # (7, K, B, 3)
+    basis = jnp.stack([jnp.ones_like(xl), xl, yl], axis=1)              # (P, 3)
+    s = jnp.stack([plane @ basis for plane in (g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter)])  # (7, K, B, 3)
     ox, oy = corner
     total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]
     d_pc, d_a, d_b = total[:3], sx[:3], sy[:3]

@@ -69,7 +69,7 @@ class TrainConfig:
     init_min_points: int = 100          # fewer dataset points than this: initialise randomly instead
     init_max_points: int = 0            # subsample dataset points to at most this many (0: all)
     init_scale_max: float = 0.0         # clamp of the initial scale as a fraction of the extent (0: none)
-    random_init_scale: float = 1.0      # random points: multiple of the nearest-neighbour scale
+    random_init_scale: float = 0.5      # random points: multiple of the nearest-neighbour scale (see random_init.py)
 
     # --- densification (2DGS defaults) ---------------------------------------------------
     strategy: str = "default"           # "default" (2DGS adaptive density) or "budget" (capped count)
