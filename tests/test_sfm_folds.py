@@ -12,7 +12,12 @@ import pytest
 
 from ghsplat_jax.sfm import disambiguate as dis
 from ghsplat_jax.sfm import folds
-from ghsplat_jax.sfm.matchgraph import MatchGraph, ModelPoses, pair_agreement, ray_agreement
+from ghsplat_jax.sfm.matchgraph import (
+    MatchGraph,
+    ModelPoses,
+    pair_agreement,
+    ray_agreement,
+)
 
 F, CX, CY = 300.0, 160.0, 120.0
 

@@ -25,7 +25,13 @@ EXIT_FOLDED = 4
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ghsplat_jax.sfm.disambiguate import METHODS
-    from ghsplat_jax.sfm.pipeline import CAMERA_MODELS, CAMERA_MODES, CAPTURE_ORDERS, MAPPERS, MATCHERS
+    from ghsplat_jax.sfm.pipeline import (
+        CAMERA_MODELS,
+        CAMERA_MODES,
+        CAPTURE_ORDERS,
+        MAPPERS,
+        MATCHERS,
+    )
 
     parser.add_argument("--images", required=True, type=Path,
                         help="folder of images (subfolders allowed) or a video file")
@@ -119,9 +125,9 @@ def _load_align_config(path: Path | None) -> dict:
 
 def build_options(args: argparse.Namespace):
     """SfmOptions from parsed arguments (the config file first, flags override it)."""
-    import numpy as np
-
     import dataclasses
+
+    import numpy as np
 
     from ghsplat_jax.sfm.align import AlignOptions
     from ghsplat_jax.sfm.disambiguate import DisambiguateOptions

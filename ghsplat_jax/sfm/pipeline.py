@@ -27,11 +27,16 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
-from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm import disambiguate as dis
 from ghsplat_jax.sfm import folds
+from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
-from ghsplat_jax.sfm.matchgraph import MatchGraph, keep_pairs, model_poses, read_match_graph
+from ghsplat_jax.sfm.matchgraph import (
+    MatchGraph,
+    keep_pairs,
+    model_poses,
+    read_match_graph,
+)
 from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
 
 MATCHERS = ("exhaustive", "sequential", "spatial")
