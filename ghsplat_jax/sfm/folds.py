@@ -31,10 +31,11 @@ class FoldOptions:
     cyclic: bool = False             # the capture closes a loop
     agree_angle_deg: float = 1.0     # a match agrees when its rays meet within this angle
     # A neighbour pair contradicts the model below this fraction. Low on purpose: when the
-    # step between frames nears the plant spacing, most of a true pair's F-inliers are
-    # look-alike matches (sideways motion keeps them on the epipolar lines).
-    min_agreement: float = 0.25
-    max_contradicted: float = 0.04   # fold when more of the neighbour pairs contradict the model
+    # step between frames nears the plant spacing, most of a true pair's F-inliers can be
+    # look-alike matches (sideways motion keeps them on the epipolar lines), while a fold
+    # leaves a seam of neighbour pairs that the model explains almost not at all.
+    min_agreement: float = 0.1
+    max_contradicted: int = 0        # fold when more neighbour pairs than this contradict the model
     jump_factor: float = 6.0         # a step this many times the median step is a jump
     opposite_deg: float = 150.0      # observing rays farther apart than this: seen from both sides
     max_opposite: float = 0.02       # fold when more of the tracks are seen from both sides
@@ -173,7 +174,7 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
         jumps = order_jumps(graph, poses, options)
         report.update(neighbour_pairs=neighbours, order_jumps=jumps,
                       rotation_chain=rotation_chain(graph, poses, options))
-        if neighbours["fraction_contradicted"] > options.max_contradicted:
+        if neighbours["num_contradicted"] > options.max_contradicted:
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
     report["long_range_pairs"] = long_range_contradictions(graph, poses, options)

@@ -42,6 +42,7 @@ from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
 MATCHERS = ("exhaustive", "sequential", "spatial")
 MAPPERS = ("incremental", "global")
 CAPTURE_ORDERS = ("name", "none")
+FOLD_CAPTURE_TIP = folds.FOLD_ADVICE[2]
 CAMERA_MODES = ("per-folder", "single", "per-image", "auto")
 # Models the undistorter turns into PINHOLE (fisheye models included).
 CAMERA_MODELS = (
@@ -479,6 +480,11 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         report["advice"] = folds.FOLD_ADVICE
     elif report["status"] != "ok" or report["unregistered_images"]:
         report["advice"] = failure_advice(options, len(names), report["num_registered"])
+        used = report.get("disambiguation", {}).get("used", "none")
+        if used != "none":
+            report["advice"].insert(0, f"every pair mapped together looked folded (look-alike plants); "
+                                       f"the {used} filter kept only the views it could verify: "
+                                       f"{FOLD_CAPTURE_TIP}")
     timings["total"] = round(time.perf_counter() - start, 3)
     report["timings_s"] = timings
     write_json(out / "sfm_report.json", report)
