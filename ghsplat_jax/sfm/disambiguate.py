@@ -60,27 +60,30 @@ def sequential_pairs(graph: MatchGraph, options: DisambiguateOptions) -> set[tup
     return {p for p in graph.pairs if graph.order_distance(*p, cyclic=options.cyclic) <= options.window}
 
 
-def verify_long_pairs(graph: MatchGraph, chain: ModelPoses, options: DisambiguateOptions) -> dict:
-    """{pair: agreement fraction or None} for every pair outside the window, judged by the chain."""
-    trusted = sequential_pairs(graph, options)
-    return {p: pair_agreement(graph, chain, p, options.verify_angle_deg)
-            for p in graph.pairs if p not in trusted}
+def chain_agreement(graph: MatchGraph, chain: list[ModelPoses], pair: tuple[int, int],
+                    angle_deg: float) -> float | None:
+    """Agreement of a pair with the first chain segment that holds both images (None: none does)."""
+    for segment in chain:
+        score = pair_agreement(graph, segment, pair, angle_deg)
+        if score is not None:
+            return score
+    return None
 
 
-def order_filter(graph: MatchGraph, chain: ModelPoses, options: DisambiguateOptions):
-    """(pairs to keep, report) for the capture-order prior, given the chain map's poses."""
+def order_filter(graph: MatchGraph, chain: list[ModelPoses], options: DisambiguateOptions):
+    """(pairs to keep, report) for the capture-order prior, given the chain's segments."""
     trusted = sequential_pairs(graph, options)
-    scores = verify_long_pairs(graph, chain, options)
+    scores = {p: chain_agreement(graph, chain, p, options.verify_angle_deg)
+              for p in graph.pairs if p not in trusted}
     kept = {p for p, a in scores.items() if a is not None and a >= options.min_agreement}
-    unverifiable = sum(a is None for a in scores.values())
     return trusted | kept, {
         "method": "order",
         "num_pairs": len(graph.pairs),
         "num_sequential_pairs": len(trusted),
         "num_long_range_pairs": len(scores),
         "num_long_range_kept": len(kept),
-        "num_long_range_unverifiable": unverifiable,  # an image the chain did not register
-        "chain_registered": len(chain.world_to_cam),
+        "num_long_range_unverifiable": sum(a is None for a in scores.values()),  # no segment holds both
+        "chain_segments": [len(s.world_to_cam) for s in chain],
     }
 
 

@@ -11,6 +11,10 @@ a small reprojection error, so those numbers cannot catch it. What it cannot hid
   (and, for a closed walk, a loop that does not close);
 - tracks observed from opposite sides (rays more than `opposite_deg` apart), which a
   surface point on a plant or the ground cannot be;
+- the chain: segments mapped from neighbour pairs alone (no look-alike pair between
+  distant frames reaches them, so they cannot fold) must agree with the model up to a
+  similarity, and hold (nearly) all of its views: a view the chain never reached was
+  placed by distant-frame matches alone, the kind a look-alike plant fakes;
 - a split: several models, or a match graph in several pieces.
 
 `diagnose` returns a JSON-ready dict; its "fold_suspected" is what `ghsplat sfm` acts on.
@@ -37,6 +41,10 @@ class FoldOptions:
     min_agreement: float = 0.1
     max_contradicted: int = 0        # fold when more neighbour pairs than this contradict the model
     jump_factor: float = 6.0         # a step this many times the median step is a jump
+    min_segment: int = 5             # chain segments with fewer images in the model are not compared
+    max_chain_deviation: float = 0.05  # fold when a segment's centres deviate more (of its extent)
+    max_chain_rotation_deg: float = 5.0  # ... or its rotations by more than this
+    max_unverified: float = 0.1      # fold when more of the views lie outside every chain segment
     opposite_deg: float = 150.0      # observing rays farther apart than this: seen from both sides
     max_opposite: float = 0.02       # fold when more of the tracks are seen from both sides
 
@@ -150,6 +158,38 @@ def opposite_tracks(reconstruction, options: FoldOptions) -> dict:
             "fraction_opposite": round(opposite / total, 4) if total else 0.0}
 
 
+def chain_consistency(poses: ModelPoses, chain: list[ModelPoses], graph: MatchGraph,
+                      options: FoldOptions) -> dict:
+    """Each chain segment (mapped from neighbour pairs only, so it cannot fold) against the
+    model: camera-centre RMSE after a similarity alignment, as a fraction of the segment's
+    extent in the model, and the largest rotation difference."""
+    from ghsplat_jax.sfm.evaluate import compare_poses
+
+    segments = []
+    for segment in chain:
+        common = sorted(set(segment.world_to_cam) & set(poses.world_to_cam))
+        if len(common) < options.min_segment:
+            continue
+        lift = lambda m: np.vstack([m, [0.0, 0.0, 0.0, 1.0]])  # noqa: E731
+        est = np.stack([lift(segment.world_to_cam[k]) for k in common])
+        ref = np.stack([lift(poses.world_to_cam[k]) for k in common])
+        result = compare_poses(est, ref)
+        rmse = result["centre_error_rmse"] / max(result["extent"], 1e-12)
+        segments.append({"first": graph.names[common[0]], "last": graph.names[common[-1]],
+                         "num_images": len(common), "centre_rmse_rel": round(rmse, 5),
+                         "rotation_max_deg": round(result["rotation_error_max_deg"], 3)})
+    bad = [s for s in segments if s["centre_rmse_rel"] > options.max_chain_deviation
+           or s["rotation_max_deg"] > options.max_chain_rotation_deg]
+    # Views the chain never reached were registered through pairs of distant frames only:
+    # on a self-similar row exactly the ones a look-alike match can misplace.
+    reached = set().union(*(set(s.world_to_cam) for s in chain)) if chain else set()
+    unverified = sorted(set(poses.world_to_cam) - reached)
+    return {"num_segments": len(segments), "num_inconsistent": len(bad), "segments": segments[:20],
+            "num_unverified": len(unverified),
+            "fraction_unverified": round(len(unverified) / max(len(poses.world_to_cam), 1), 4),
+            "unverified": [graph.names[k] for k in unverified[:20]]}
+
+
 def graph_components(graph: MatchGraph) -> list[int]:
     """Sizes of the connected pieces of the verified match graph, largest first."""
     from scipy.sparse import coo_matrix
@@ -164,7 +204,8 @@ def graph_components(graph: MatchGraph) -> list[int]:
 
 
 def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, reconstruction,
-             options: FoldOptions, capture_order: bool, num_models: int) -> dict:
+             options: FoldOptions, capture_order: bool, num_models: int,
+             chain: list[ModelPoses] | None = None) -> dict:
     """All fold diagnostics. `graph`: every verified pair; `mapped_graph`: the pairs the mapper
     was given (the same unless a filter dropped some)."""
     report = {"capture_order": capture_order, "window": options.window, "cyclic": options.cyclic}
@@ -177,6 +218,15 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
         if neighbours["num_contradicted"] > options.max_contradicted:
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
+    if chain:
+        consistency = chain_consistency(poses, chain, graph, options)
+        report["chain_consistency"] = consistency
+        if consistency["num_inconsistent"]:
+            reasons.append(f"{consistency['num_inconsistent']} of {consistency['num_segments']} segments "
+                           "mapped from neighbour frames alone disagree with the model")
+        if consistency["fraction_unverified"] > options.max_unverified:
+            reasons.append(f"{consistency['num_unverified']} of {len(poses.world_to_cam)} views are placed "
+                           "only through matches with distant frames, which neighbour frames cannot confirm")
     report["long_range_pairs"] = long_range_contradictions(graph, poses, options)
     opposite = opposite_tracks(reconstruction, options)
     report["opposite_tracks"] = opposite

@@ -310,26 +310,29 @@ def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> No
     shutil.rmtree(tmp, ignore_errors=True)  # stereo/ and scripts are for COLMAP's MVS
 
 
-def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str,
-                 options: SfmOptions) -> tuple[Path, dict, set]:
+def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions) -> list[ModelPoses]:
+    """The chain: segments mapped from the trusted neighbour pairs alone (largest first). It
+    cannot fold (no look-alike pair between distant frames reaches it); it may break where
+    neighbours share too little, hence segments."""
+    distorted = database.parent
+    chain_db = distorted / "chain.db"
+    keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, options.disambiguate_options))
+    models = map_images(chain_db, root, distorted / "chain_models", options)
+    shutil.rmtree(distorted / "chain_models", ignore_errors=True)
+    chain_db.unlink(missing_ok=True)
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    return [model_poses(r, graph) for r in ranked]
+
+
+def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
+                 chain: list[ModelPoses] | None) -> tuple[Path, dict, set]:
     """(database to map from, disambiguation report, pairs kept) for `method` (order, tracks)."""
     opts = options.disambiguate_options
-    distorted = database.parent
     if method == "tracks":
         keep, info = dis.track_filter(graph, opts)
-    else:  # "order": map the trusted neighbour pairs first, then verify the others against it
-        chain_db = distorted / "chain.db"
-        keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, opts))
-        chain_models = map_images(chain_db, root, distorted / "chain_models", options)
-        shutil.rmtree(distorted / "chain_models", ignore_errors=True)
-        chain_db.unlink(missing_ok=True)
-        chain = max(chain_models.values(), key=lambda r: r.num_reg_images(), default=None)
-        if chain is None:
-            keep, info = dis.sequential_pairs(graph, opts), {"method": "order", "chain_registered": 0}
-        else:
-            keep, info = dis.order_filter(graph, model_poses(chain, graph), opts)
-        info["chain_models"] = sorted((r.num_reg_images() for r in chain_models.values()), reverse=True)
-    filtered = distorted / "database_filtered.db"
+    else:  # "order": trust the neighbour pairs, verify the others against the chain
+        keep, info = dis.order_filter(graph, chain or [], opts)
+    filtered = database.parent / "database_filtered.db"
     info["num_pairs_removed"] = keep_pairs(database, filtered, graph, keep)
     return filtered, info, keep
 
@@ -344,11 +347,11 @@ class Mapped:
 
 
 def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
-                  models_dir: Path) -> Mapped:
+                  models_dir: Path, chain: list[ModelPoses] | None) -> Mapped:
     """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics."""
     mapped_graph, mapping_db, info = graph, database, {"method": "none"}
     if method != "none":
-        mapping_db, info, keep = filter_pairs(database, root, graph, method, options)
+        mapping_db, info, keep = filter_pairs(database, root, graph, method, options, chain)
         mapped_graph = dataclasses.replace(graph, pairs={p: graph.pairs[p] for p in keep})
     models = map_images(mapping_db, root, models_dir, options)
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
@@ -356,7 +359,8 @@ def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, op
     if best is not None:
         fold_options = dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
         diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, fold_options,
-                                     capture_order=options.capture_order == "name", num_models=len(models))
+                                     capture_order=options.capture_order == "name", num_models=len(models),
+                                     chain=chain)
     return Mapped(models, best, info, diagnostics)
 
 
@@ -367,9 +371,13 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     through the order filter (the tracks filter without a capture order) and keep that."""
     graph = read_match_graph(database, names)
     models_dir = distorted / "models"
+    chain = None
+    if options.capture_order == "name" and (options.fold_check or options.disambiguate in ("auto", "order")):
+        with _timed(timings, "chain"):
+            chain = map_chain(database, root, graph, options)
     first = "none" if options.disambiguate == "auto" else options.disambiguate
     with _timed(timings, "mapping", bar):
-        result = map_and_check(database, root, graph, first, options, models_dir)
+        result = map_and_check(database, root, graph, first, options, models_dir, chain)
     if options.disambiguate != "auto":
         return result
     flagged = result.best is None or result.diagnostics["fold_suspected"]
@@ -382,7 +390,7 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
         return result
     fallback = "order" if options.capture_order == "name" else "tracks"
     with _timed(timings, "disambiguation"):
-        second = map_and_check(database, root, graph, fallback, options, distorted / "models_filtered")
+        second = map_and_check(database, root, graph, fallback, options, distorted / "models_filtered", chain)
     shutil.rmtree(distorted / "models_filtered", ignore_errors=True)
     if second.best is None:  # nothing better: keep the flagged first model
         result.disambiguation = {**summary, "used": "none", "fallback": second.disambiguation}
