@@ -86,6 +86,29 @@ def test_clean_walk_is_not_flagged_and_a_folded_one_is():
     assert ["005.png", "006.png"] == bad["contradicted"][0][:2]
 
 
+def test_chain_segments_must_agree_with_the_model_and_reach_its_views():
+    graph, poses = _walk(n=12)
+    options = folds.FoldOptions(min_segment=4)
+    segment = _model(poses[:8])  # the chain reached the first 8 views
+    clean = folds.chain_consistency(_model(poses[:8]), [segment], graph, options)
+    assert clean["num_segments"] == 1 and clean["num_inconsistent"] == 0 and clean["num_unverified"] == 0
+    folded = [p if k < 4 else _look_y(2 * 1.4 - k * 0.4) for k, p in enumerate(poses)]
+    bad = folds.chain_consistency(_model(folded), [segment], graph, options)
+    assert bad["num_inconsistent"] == 1 and bad["segments"][0]["centre_rmse_rel"] > options.max_chain_deviation
+    assert bad["num_unverified"] == 4 and bad["unverified"] == ["008.png", "009.png", "010.png", "011.png"]
+    report = folds.diagnose(graph, graph, _model(folded), _Reconstruction(), options, capture_order=True,
+                            num_models=1, chain=[segment])
+    assert report["fold_suspected"] and len(report["reasons"]) >= 2
+
+
+class _Reconstruction:
+    """Just enough of a pycolmap model for opposite_tracks: no points."""
+    points3D: dict = {}
+
+    def reg_image_ids(self):
+        return []
+
+
 def test_order_jumps_and_components():
     graph, poses = _walk(n=8)
     jumped = [p if k < 4 else _look_y(k * 0.4 + 5.0) for k, p in enumerate(poses)]
@@ -112,7 +135,7 @@ def test_order_filter_keeps_verified_long_pairs_and_drops_aliased_ones():
     aliased = dict(graph.pairs)
     aliased[(0, 5)] = np.column_stack([np.arange(40), rng.permutation(len(graph.keypoints[5]))[:40]])
     graph = MatchGraph(graph.names, graph.image_ids, graph.camera_ids, graph.keypoints, aliased)
-    keep, info = dis.order_filter(graph, _model(poses), options)
+    keep, info = dis.order_filter(graph, [_model(poses)], options)
     assert dis.sequential_pairs(graph, options) <= keep
     assert (0, 2) in keep and (0, 5) not in keep
     assert info["num_long_range_kept"] == info["num_long_range_pairs"] - 1
