@@ -163,7 +163,8 @@ def run_case(case: Case, tmp: Path, width: int, height: int) -> list[dict]:
         print(f"{case.name:28s} {label:9s} reg {row['registered']:3d}/{len(names):<3d} "
               f"rmse {row.get('centre_rmse_pct', float('nan')):7.2f}% rot max "
               f"{row.get('rotation_max_deg', float('nan')):6.1f} deg fold {row['fold_suspected']!s:5s} "
-              f"{row['status']:7s} {row['total_s']:6.1f}s", flush=True)
+              f"{row['status']:7s} {row['total_s']:6.1f}s {'; '.join(row.get('fold_reasons', []))[:160]}",
+              flush=True)
     shutil.rmtree(tmp / case.name, ignore_errors=True)
     return rows
 

@@ -159,7 +159,7 @@ def opposite_tracks(reconstruction, options: FoldOptions) -> dict:
 
 
 def chain_consistency(poses: ModelPoses, chain: list[ModelPoses], graph: MatchGraph,
-                      options: FoldOptions) -> dict:
+                      options: FoldOptions, mapped_graph: MatchGraph | None = None) -> dict:
     """Each chain segment (mapped from neighbour pairs only, so it cannot fold) against the
     model: camera-centre RMSE after a similarity alignment, as a fraction of the segment's
     extent in the model, and the largest rotation difference."""
@@ -182,8 +182,13 @@ def chain_consistency(poses: ModelPoses, chain: list[ModelPoses], graph: MatchGr
            or s["rotation_max_deg"] > options.max_chain_rotation_deg]
     # Views the chain never reached were registered through pairs of distant frames only:
     # on a self-similar row exactly the ones a look-alike match can misplace.
+    # A view outside the chain whose mapped pairs are all neighbour pairs (the order filter
+    # keeps no unverifiable distant pair) was placed by neighbours after all.
     reached = set().union(*(set(s.world_to_cam) for s in chain)) if chain else set()
-    unverified = sorted(set(poses.world_to_cam) - reached)
+    mapped = (mapped_graph or graph).pairs
+    distant = {k for p in mapped if graph.order_distance(*p, cyclic=options.cyclic) > options.window
+               and p[0] in poses.world_to_cam and p[1] in poses.world_to_cam for k in p}
+    unverified = sorted((set(poses.world_to_cam) - reached) & distant)
     return {"num_segments": len(segments), "num_inconsistent": len(bad), "segments": segments[:20],
             "num_unverified": len(unverified),
             "fraction_unverified": round(len(unverified) / max(len(poses.world_to_cam), 1), 4),
@@ -219,7 +224,7 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
     if chain:
-        consistency = chain_consistency(poses, chain, graph, options)
+        consistency = chain_consistency(poses, chain, graph, options, mapped_graph)
         report["chain_consistency"] = consistency
         if consistency["num_inconsistent"]:
             reasons.append(f"{consistency['num_inconsistent']} of {consistency['num_segments']} segments "
