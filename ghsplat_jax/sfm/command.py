@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "none: plain pycolmap")
     d.add_argument("--capture-order", choices=CAPTURE_ORDERS, default="name",
                    help="name: sorted file names are the shooting order (frame folders, video); "
-                        "none: unknown (only --disambiguate tracks or none, fewer fold checks)")
+                        "none: unknown (no order filter: auto falls back to tracks; fewer fold checks)")
     d.add_argument("--disambiguate-window", type=int, default=None,
                    help="order filter: frames this many apart or fewer are trusted (default 1)")
     d.add_argument("--loop", action="store_true",
