@@ -250,6 +250,8 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=360)
     parser.add_argument("--cases", nargs="*", default=None, help="case names (default: all)")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the other cases' rows of the existing results.json (rerun some cases)")
     args = parser.parse_args()
 
     import pycolmap
@@ -263,6 +265,16 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="sfm_disambiguation_") as tmp:
         for case in cases:
             rows.extend(run_case(case, Path(tmp), args.width, args.height))
+    if args.merge and (RESULTS / "results.json").is_file():
+        import json
+
+        previous = json.loads((RESULTS / "results.json").read_text())
+        rerun = {c.name for c in cases}
+        kept = [r for r in previous["rows"] if r["case"] not in rerun]
+        order = [c.name for c in CASES]
+        rows = sorted(kept + rows, key=lambda r: (order.index(r["case"]) if r["case"] in order else 99,
+                                                  METHODS.index(r["method"])))
+        cases = [c for c in CASES if c.name in {r["case"] for r in rows}]
     report = {
         "benchmark": "sfm_disambiguation",
         "machine": {"platform": platform.platform(), "processor": platform.processor(),

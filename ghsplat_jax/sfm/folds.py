@@ -223,7 +223,7 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
         if neighbours["num_contradicted"] > options.max_contradicted:
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
-    if chain:
+    if chain is not None:  # an empty chain (nothing mapped from neighbours alone) confirms no view
         consistency = chain_consistency(poses, chain, graph, options, mapped_graph)
         report["chain_consistency"] = consistency
         if consistency["num_inconsistent"]:
