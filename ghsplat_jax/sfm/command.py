@@ -5,7 +5,8 @@
     ghsplat sfm --images photos/ --out scene/ --camera-height 1.2  # metric scale
 
 Exit status: 0 when at least --min-registered-fraction of the images registered,
-3 when fewer did (or none), 1 on bad input or settings.
+3 when fewer did (or none), 4 when the fold diagnostics suspect a row mapped onto itself
+(self-similar plants; the model is written for inspection only), 1 on bad input or settings.
 """
 
 from __future__ import annotations
@@ -19,10 +20,18 @@ HELP = "structure from motion (pycolmap) with greenhouse alignment and undistort
 
 EXIT_BAD_INPUT = 1
 EXIT_TOO_FEW_REGISTERED = 3
+EXIT_FOLDED = 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ghsplat_jax.sfm.pipeline import CAMERA_MODELS, CAMERA_MODES, MAPPERS, MATCHERS
+    from ghsplat_jax.sfm.disambiguate import METHODS
+    from ghsplat_jax.sfm.pipeline import (
+        CAMERA_MODELS,
+        CAMERA_MODES,
+        CAPTURE_ORDERS,
+        MAPPERS,
+        MATCHERS,
+    )
 
     parser.add_argument("--images", required=True, type=Path,
                         help="folder of images (subfolders allowed) or a video file")
@@ -47,6 +56,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="skip undistortion (OUT/images, OUT/sparse/0 are then not written)")
     g.add_argument("--threads", type=int, default=-1, help="CPU threads (-1: all)")
     g.add_argument("--seed", type=int, default=0, help="random seed for repeatable runs")
+
+    d = parser.add_argument_group("self-similar rows (disambiguation and fold checks)")
+    d.add_argument("--disambiguate", choices=METHODS, default="auto",
+                   help="auto (default): map every pair, and when the fold check flags the model map "
+                        "again through the order filter; order: trust neighbour frames only and keep "
+                        "a distant pair when its matches agree with the map of the neighbours; "
+                        "tracks: drop pairs made of confusing tracks (no capture order needed); "
+                        "none: plain pycolmap")
+    d.add_argument("--capture-order", choices=CAPTURE_ORDERS, default="name",
+                   help="name: sorted file names are the shooting order (frame folders, video); "
+                        "none: unknown (no order filter: auto falls back to tracks; fewer fold checks)")
+    d.add_argument("--disambiguate-window", type=int, default=None,
+                   help="order filter: frames this many apart or fewer are trusted (default 1)")
+    d.add_argument("--loop", action="store_true",
+                   help="the capture closes a loop: the last frame is a neighbour of the first")
+    d.add_argument("--no-fold-check", action="store_true",
+                   help="report the fold diagnostics but do not fail the run on them")
 
     v = parser.add_argument_group("video and frame folders")
     v.add_argument("--select-frames", action="store_true",
@@ -99,9 +125,12 @@ def _load_align_config(path: Path | None) -> dict:
 
 def build_options(args: argparse.Namespace):
     """SfmOptions from parsed arguments (the config file first, flags override it)."""
+    import dataclasses
+
     import numpy as np
 
     from ghsplat_jax.sfm.align import AlignOptions
+    from ghsplat_jax.sfm.disambiguate import DisambiguateOptions
     from ghsplat_jax.sfm.frames import FrameOptions
     from ghsplat_jax.sfm.pipeline import SfmOptions
 
@@ -125,7 +154,12 @@ def build_options(args: argparse.Namespace):
     )
     frames = FrameOptions(min_baseline=args.min_baseline, blur_fraction=args.blur_fraction,
                           max_frames=args.max_frames)
+    disambiguation = DisambiguateOptions(cyclic=args.loop)
+    if args.disambiguate_window is not None:
+        disambiguation = dataclasses.replace(disambiguation, window=args.disambiguate_window)
     return SfmOptions(
+        disambiguate=args.disambiguate, capture_order=args.capture_order,
+        disambiguate_options=disambiguation, fold_check=not args.no_fold_check,
         matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
         camera_mode=args.camera_mode, max_size=args.max_size or None,
         max_features=args.max_features, sequential_overlap=args.overlap,
@@ -153,6 +187,11 @@ def main(args: argparse.Namespace) -> int:
     print(f"Report: {Path(args.out) / 'sfm_report.json'}")
     if report["status"] == "ok":
         return 0
+    if report["status"] == "folded":
+        reasons = "; ".join(report["fold_diagnostics"]["reasons"])
+        print(f"ghsplat sfm: the model looks folded ({reasons}); it is in {args.out} for inspection "
+              "only: do not train on it (--no-fold-check to accept it)", file=sys.stderr)
+        return EXIT_FOLDED
     needed = options.min_registered_fraction
     print(f"ghsplat sfm: only {report.get('num_registered', 0)} of {report['num_images']} images "
           f"registered (below --min-registered-fraction {needed})", file=sys.stderr)

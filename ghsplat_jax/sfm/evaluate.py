@@ -45,6 +45,7 @@ def compare_poses(est_w2c: np.ndarray, ref_w2c: np.ndarray) -> dict:
         "extent": extent,
         "centre_error_max": float(centre_err.max()),
         "centre_error_mean": float(centre_err.mean()),
+        "centre_error_rmse": float(np.sqrt(np.mean(centre_err**2))),
         "centre_error_max_rel": float(centre_err.max() / extent),
         "rotation_error_max_deg": float(rot_err.max()),
         "rotation_error_mean_deg": float(rot_err.mean()),

@@ -1,12 +1,14 @@
 """Structure from motion with pycolmap (CPU, offline), then greenhouse alignment and undistortion.
 
 Stages: frame selection (video input) -> SIFT extraction -> matching (exhaustive,
-sequential or spatial) -> mapping (incremental or global/GLOMAP) -> alignment ->
+sequential or spatial) -> pair filtering against self-similar rows (disambiguate.py) ->
+mapping (incremental or global/GLOMAP) -> fold diagnostics (folds.py) -> alignment ->
 undistortion. Output layout (the one 3DGS/2DGS tools expect):
 
     OUT/images/            undistorted images (PINHOLE), ready for training
     OUT/sparse/0/          COLMAP binary model of those images, aligned
-    OUT/distorted/         database.db and the aligned model before undistortion
+    OUT/distorted/         database.db (all verified pairs), database_filtered.db (the pairs
+                           the mapper used) and the aligned model before undistortion
     OUT/frames/            selected frames (video input only)
     OUT/sfm_report.json    counts, unregistered images, errors, alignment, timings
 
@@ -25,12 +27,22 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
+from ghsplat_jax.sfm import disambiguate as dis
+from ghsplat_jax.sfm import folds
 from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
+from ghsplat_jax.sfm.matchgraph import (
+    MatchGraph,
+    keep_pairs,
+    model_poses,
+    read_match_graph,
+)
 from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
 
 MATCHERS = ("exhaustive", "sequential", "spatial")
 MAPPERS = ("incremental", "global")
+CAPTURE_ORDERS = ("name", "none")
+FOLD_CAPTURE_TIP = folds.FOLD_ADVICE[2]
 CAMERA_MODES = ("per-folder", "single", "per-image", "auto")
 # Models the undistorter turns into PINHOLE (fisheye models included).
 CAMERA_MODELS = (
@@ -53,6 +65,12 @@ class SfmOptions:
     max_features: int = 8192  # SIFT features per image
     sequential_overlap: int = 10  # neighbours matched per frame in sequential matching
     min_registered_fraction: float = 0.9  # below this the run counts as failed
+    disambiguate: str = "auto"  # "auto": plain, re-mapped through a pair filter when it looks
+    # folded; "order" or "tracks": always filter pairs before mapping; "none": plain pycolmap
+    capture_order: str = "name"  # "name": sorted file names are the capture order; "none": unknown
+    disambiguate_options: dis.DisambiguateOptions = dataclasses.field(default_factory=dis.DisambiguateOptions)
+    fold_options: folds.FoldOptions = dataclasses.field(default_factory=folds.FoldOptions)
+    fold_check: bool = True  # a suspected fold sets status "folded" (ghsplat sfm exits 4)
     select_frames: bool = False  # thin a frame folder like a video (always on for video files)
     frame_options: frames_mod.FrameOptions = dataclasses.field(default_factory=frames_mod.FrameOptions)
     align: str = "greenhouse"  # or "none"
@@ -69,6 +87,8 @@ class SfmOptions:
             ("camera_mode", self.camera_mode, CAMERA_MODES),
             ("camera_model", self.camera_model, CAMERA_MODELS),
             ("align", self.align, ("greenhouse", "none")),
+            ("disambiguate", self.disambiguate, dis.METHODS),
+            ("capture_order", self.capture_order, CAPTURE_ORDERS),
         ):
             if value not in allowed:
                 raise SfmError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
@@ -76,6 +96,13 @@ class SfmOptions:
             raise SfmError(f"min_registered_fraction must be in [0, 1], got {self.min_registered_fraction}")
         if self.max_size is not None and self.max_size < 32:
             raise SfmError(f"max_size must be at least 32 pixels, got {self.max_size}")
+        if self.disambiguate == "order" and self.capture_order == "none":
+            raise SfmError("--disambiguate order needs the capture order: use --capture-order name "
+                           "(frames named in shooting order) or --disambiguate tracks")
+        try:
+            self.disambiguate_options.validate()
+        except ValueError as exc:
+            raise SfmError(str(exc)) from exc
 
 
 @contextlib.contextmanager
@@ -283,14 +310,104 @@ def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> No
     shutil.rmtree(tmp, ignore_errors=True)  # stereo/ and scripts are for COLMAP's MVS
 
 
+def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions) -> list[ModelPoses]:
+    """The chain: segments mapped from the trusted neighbour pairs alone (largest first). It
+    cannot fold (no look-alike pair between distant frames reaches it); it may break where
+    neighbours share too little, hence segments."""
+    distorted = database.parent
+    chain_db = distorted / "chain.db"
+    keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, options.disambiguate_options))
+    models = map_images(chain_db, root, distorted / "chain_models", options)
+    shutil.rmtree(distorted / "chain_models", ignore_errors=True)
+    chain_db.unlink(missing_ok=True)
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    return [model_poses(r, graph) for r in ranked]
+
+
+def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
+                 chain: list[ModelPoses] | None) -> tuple[Path, dict, set]:
+    """(database to map from, disambiguation report, pairs kept) for `method` (order, tracks)."""
+    opts = options.disambiguate_options
+    if method == "tracks":
+        keep, info = dis.track_filter(graph, opts)
+    else:  # "order": trust the neighbour pairs, verify the others against the chain
+        keep, info = dis.order_filter(graph, chain or [], opts)
+    filtered = database.parent / "database_filtered.db"
+    info["num_pairs_removed"] = keep_pairs(database, filtered, graph, keep)
+    return filtered, info, keep
+
+
+@dataclasses.dataclass
+class Mapped:
+    """What one mapping pass produced."""
+    models: dict                 # {index: Reconstruction}
+    best: object | None          # the largest, or None
+    disambiguation: dict         # the pair filter's report
+    diagnostics: dict | None     # folds.diagnose of `best`
+
+
+def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
+                  models_dir: Path, chain: list[ModelPoses] | None) -> Mapped:
+    """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics."""
+    mapped_graph, mapping_db, info = graph, database, {"method": "none"}
+    if method != "none":
+        mapping_db, info, keep = filter_pairs(database, root, graph, method, options, chain)
+        mapped_graph = dataclasses.replace(graph, pairs={p: graph.pairs[p] for p in keep})
+    models = map_images(mapping_db, root, models_dir, options)
+    best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    diagnostics = None
+    if best is not None:
+        fold_options = dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
+        diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, fold_options,
+                                     capture_order=options.capture_order == "name", num_models=len(models),
+                                     chain=chain)
+    return Mapped(models, best, info, diagnostics)
+
+
+def reconstruct(database: Path, root: Path, names: list[str], options: SfmOptions, distorted: Path,
+                timings: dict, bar=None) -> Mapped:
+    """Mapping with options.disambiguate. "auto": map every verified pair (plain pycolmap) and
+    keep that model unless the fold check flags it (or nothing registers); then map again
+    through the order filter (the tracks filter without a capture order) and keep that."""
+    graph = read_match_graph(database, names)
+    models_dir = distorted / "models"
+    chain = None
+    if options.capture_order == "name" and (options.fold_check or options.disambiguate in ("auto", "order")):
+        with _timed(timings, "chain"):
+            chain = map_chain(database, root, graph, options)
+    first = "none" if options.disambiguate == "auto" else options.disambiguate
+    with _timed(timings, "mapping", bar):
+        result = map_and_check(database, root, graph, first, options, models_dir, chain)
+    if options.disambiguate != "auto":
+        return result
+    flagged = result.best is None or result.diagnostics["fold_suspected"]
+    summary = {"method": "auto", "first_pass": {
+        "num_registered": 0 if result.best is None else result.best.num_reg_images(),
+        "fold_suspected": None if result.best is None else result.diagnostics["fold_suspected"],
+        "reasons": [] if result.best is None else result.diagnostics["reasons"]}}
+    if not flagged:
+        result.disambiguation = {**summary, "used": "none"}
+        return result
+    fallback = "order" if options.capture_order == "name" else "tracks"
+    with _timed(timings, "disambiguation"):
+        second = map_and_check(database, root, graph, fallback, options, distorted / "models_filtered", chain)
+    shutil.rmtree(distorted / "models_filtered", ignore_errors=True)
+    if second.best is None:  # nothing better: keep the flagged first model
+        result.disambiguation = {**summary, "used": "none", "fallback": second.disambiguation}
+        return result
+    second.disambiguation = {**summary, "used": fallback, "fallback": second.disambiguation}
+    return second
+
+
 # ---------------------------------------------------------------------------- the run
 
 
 def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict:
     """Run the whole pipeline; writes OUT/sfm_report.json and returns the report.
 
-    report["status"] is "ok", "partial" (fewer than min_registered_fraction registered;
-    outputs still written) or "failed" (no reconstruction).
+    report["status"] is "ok", "folded" (the fold diagnostics suspect a row mapped onto
+    itself; outputs still written, for inspection only), "partial" (fewer than
+    min_registered_fraction registered; outputs still written) or "failed" (no reconstruction).
     """
     import pycolmap
     from tqdm import tqdm
@@ -307,7 +424,8 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
     distorted = out / "distorted"
     distorted.mkdir(parents=True, exist_ok=True)
     database = distorted / "database.db"
-    for stale in (database, database.with_name("database.db-wal"), database.with_name("database.db-shm")):
+    for stale in (database, database.with_name("database.db-wal"), database.with_name("database.db-shm"),
+                  database.with_name("database_filtered.db")):
         stale.unlink(missing_ok=True)
 
     report = {
@@ -331,9 +449,9 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
                            f"of {len(names)} images (unreadable: {', '.join(unreadable[:10])})")
         with _timed(timings, "matching", bar):
             match(database, options)
-        with _timed(timings, "mapping", bar):
-            models = map_images(database, root, distorted / "models", options)
-        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        result = reconstruct(database, root, names, options, distorted, timings, bar)
+        models, best = result.models, result.best
+        report["disambiguation"] = result.disambiguation
         report.update(_registration(models, best, names))
         model_dir = distorted / "sparse" / "0"
         if best is None:  # leave no earlier run's model beside a report that says "failed"
@@ -341,6 +459,7 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
                 shutil.rmtree(stale, ignore_errors=True)
         else:
             report.update(reconstruction_stats(best))
+            report["fold_diagnostics"] = result.diagnostics
             report["alignment"] = {"method": "none"}
             if options.align == "greenhouse":
                 write_model(best, model_dir)  # kept unaligned should the alignment fail
@@ -356,14 +475,24 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
                 report["cameras"] = _camera_summary(out / "sparse" / "0")
     shutil.rmtree(distorted / "models", ignore_errors=True)
 
+    folded = options.fold_check and report.get("fold_diagnostics", {}).get("fold_suspected", False)
     if best is None:
         report["status"] = "failed"
+    elif folded:
+        report["status"] = "folded"
     elif report["registered_fraction"] < options.min_registered_fraction:
         report["status"] = "partial"
     else:
         report["status"] = "ok"
-    if report["status"] != "ok" or report["unregistered_images"]:
+    if report["status"] == "folded":
+        report["advice"] = folds.FOLD_ADVICE
+    elif report["status"] != "ok" or report["unregistered_images"]:
         report["advice"] = failure_advice(options, len(names), report["num_registered"])
+        used = report.get("disambiguation", {}).get("used", "none")
+        if used != "none":
+            report["advice"].insert(0, f"every pair mapped together looked folded (look-alike plants); "
+                                       f"the {used} filter kept only the views it could verify: "
+                                       f"{FOLD_CAPTURE_TIP}")
     timings["total"] = round(time.perf_counter() - start, 3)
     report["timings_s"] = timings
     write_json(out / "sfm_report.json", report)

@@ -80,6 +80,7 @@ def summary_text(report: dict) -> str:
         lines.append(f"{report['num_points3D']} points, mean reprojection error "
                      f"{report['mean_reprojection_error_px']:.3f} px, mean track length "
                      f"{report['track_length']['mean']:.2f}.")
+    lines.extend(_fold_lines(report))
     alignment = report.get("alignment", {})
     if alignment.get("method") == "greenhouse":
         lines.append(f"Aligned: up from {alignment['up_source']}, row from {alignment['row_source']}, "
@@ -92,3 +93,25 @@ def summary_text(report: dict) -> str:
     if timings:
         lines.append("Timings: " + ", ".join(f"{k} {v:.1f}s" for k, v in timings.items()))
     return "\n".join(lines)
+
+
+def _fold_lines(report: dict) -> list[str]:
+    """What the pair filter did and what the fold check found."""
+    lines = []
+    dis = report.get("disambiguation", {})
+    if dis.get("method") == "auto" and dis.get("used", "none") != "none":
+        lines.append(f"The plain model looked folded ({'; '.join(dis['first_pass']['reasons'])}); "
+                     f"mapped again through the {dis['used']} pair filter.")
+    elif dis.get("method") in ("order", "tracks"):
+        lines.append(f"Pair filter {dis['method']}: {dis.get('num_pairs_removed', 0)} of "
+                     f"{dis.get('num_pairs', 0)} verified pairs left out.")
+    diag = report.get("fold_diagnostics")
+    if diag:
+        neighbours = diag.get("neighbour_pairs")
+        if neighbours:
+            lines.append(f"Fold check: {neighbours['num_contradicted']} of {neighbours['num_checked']} "
+                         "neighbour pairs contradict the poses"
+                         + (" (FOLD SUSPECTED)." if diag["fold_suspected"] else "."))
+        elif diag["fold_suspected"]:
+            lines.append("Fold check: FOLD SUSPECTED (" + "; ".join(diag["reasons"]) + ").")
+    return lines

@@ -1,0 +1,161 @@
+"""Learning-free pair filters against self-similar rows: which verified pairs the mapper may use.
+
+A row of near-identical plants gives many verified pairs between views of *different*
+plants; the mapper then folds the row onto itself. Two filters, chosen by
+`--disambiguate`:
+
+- "order" (capture-order prior with loop verification): frames shot while walking are
+  neighbours, so pairs within `window` frames of each other are trusted; a first map from
+  those pairs alone (the chain) predicts the pose of every other pair, and a long-range
+  pair is kept only when most of its matches agree with that prediction. Needs the
+  capture order (file names, sorted).
+- "tracks" (track context on the match graph, after Yan et al., CVPR 2017): a path network
+  (maximum spanning tree plus each image's strongest pairs) gives a geodesic distance
+  between images; a track whose images lie far apart on it is "confusing" (the same
+  plant part seen at several places), and a pair whose matches are mostly confusing is
+  dropped. Needs no capture order.
+
+Both return the set of pairs to keep plus a report; pipeline.py writes a filtered copy of
+the database and maps from it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ghsplat_jax.sfm.matchgraph import MatchGraph, ModelPoses, pair_agreement
+
+METHODS = ("auto", "order", "tracks", "none")
+
+
+@dataclasses.dataclass
+class DisambiguateOptions:
+    window: int = 1                 # order: pairs at most this many frames apart are trusted
+    cyclic: bool = False            # order: the capture closes a loop (last frame next to first)
+    verify_angle_deg: float = 1.0   # order: a match agrees when its rays meet within this angle
+    min_agreement: float = 0.5      # order: keep a long-range pair when this fraction agrees
+    path_neighbours: int = 3        # tracks: strongest pairs per image in the path network
+    max_track_span: int = 4         # tracks: geodesic hops beyond which a track is confusing
+    min_distinct: float = 0.5       # tracks: keep a pair when this fraction of matches is not confusing
+
+    def validate(self) -> None:
+        if self.window < 1:
+            raise ValueError(f"disambiguation window must be >= 1 frame, got {self.window}")
+        if not 0.0 < self.verify_angle_deg < 30.0:
+            raise ValueError(f"verify angle must be in (0, 30) degrees, got {self.verify_angle_deg}")
+        for name in ("min_agreement", "min_distinct"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.path_neighbours < 1 or self.max_track_span < 1:
+            raise ValueError("path_neighbours and max_track_span must be >= 1")
+
+
+# ---------------------------------------------------------------------------- capture order
+
+
+def sequential_pairs(graph: MatchGraph, options: DisambiguateOptions) -> set[tuple[int, int]]:
+    """Verified pairs within the trusted window of the capture order."""
+    return {p for p in graph.pairs if graph.order_distance(*p, cyclic=options.cyclic) <= options.window}
+
+
+def chain_agreement(graph: MatchGraph, chain: list[ModelPoses], pair: tuple[int, int],
+                    angle_deg: float) -> float | None:
+    """Agreement of a pair with the first chain segment that holds both images (None: none does)."""
+    for segment in chain:
+        score = pair_agreement(graph, segment, pair, angle_deg)
+        if score is not None:
+            return score
+    return None
+
+
+def order_filter(graph: MatchGraph, chain: list[ModelPoses], options: DisambiguateOptions):
+    """(pairs to keep, report) for the capture-order prior, given the chain's segments."""
+    trusted = sequential_pairs(graph, options)
+    scores = {p: chain_agreement(graph, chain, p, options.verify_angle_deg)
+              for p in graph.pairs if p not in trusted}
+    kept = {p for p, a in scores.items() if a is not None and a >= options.min_agreement}
+    return trusted | kept, {
+        "method": "order",
+        "num_pairs": len(graph.pairs),
+        "num_sequential_pairs": len(trusted),
+        "num_long_range_pairs": len(scores),
+        "num_long_range_kept": len(kept),
+        "num_long_range_unverifiable": sum(a is None for a in scores.values()),  # no segment holds both
+        "chain_segments": [len(s.world_to_cam) for s in chain],
+    }
+
+
+# ---------------------------------------------------------------------------- track context
+
+
+def tracks_from_pairs(graph: MatchGraph) -> tuple[np.ndarray, np.ndarray]:
+    """(track id per keypoint, offsets): union of all inlier matches; keypoint k of image i
+    is global node offsets[i] + k."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in graph.keypoints])])
+    rows, cols = [], []
+    for (i, j), m in graph.pairs.items():
+        rows.append(offsets[i] + m[:, 0])
+        cols.append(offsets[j] + m[:, 1])
+    n = int(offsets[-1])
+    if not rows:
+        return np.arange(n), offsets
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    adjacency = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    return labels, offsets
+
+
+def path_network_distances(graph: MatchGraph, neighbours: int) -> np.ndarray:
+    """(N, N) hop distances on the maximum spanning tree plus each image's strongest pairs."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree, shortest_path
+
+    n = len(graph.names)
+    weight = np.zeros((n, n))
+    for (i, j), m in graph.pairs.items():
+        weight[i, j] = weight[j, i] = len(m)
+    edges = np.zeros((n, n), bool)
+    # maximum spanning tree = minimum spanning tree of (max + 1 - weight) on existing edges
+    mst = minimum_spanning_tree(np.where(weight > 0, weight.max() + 1 - weight, 0)).toarray() > 0
+    edges |= mst | mst.T
+    for i in range(n):
+        strongest = np.argsort(-weight[i])[:neighbours]
+        strongest = strongest[weight[i, strongest] > 0]
+        edges[i, strongest] = edges[strongest, i] = True
+    r, c = np.nonzero(edges)
+    return shortest_path(coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n)), unweighted=True)
+
+
+def track_filter(graph: MatchGraph, options: DisambiguateOptions):
+    """(pairs to keep, report) from the track context of every pair's matches."""
+    labels, offsets = tracks_from_pairs(graph)
+    dist = path_network_distances(graph, options.path_neighbours)
+    image_of = np.repeat(np.arange(len(graph.names)), np.diff(offsets))
+    # track span: the largest path-network distance between two images that see it
+    order = np.argsort(labels, kind="stable")
+    bounds = np.flatnonzero(np.diff(labels[order])) + 1
+    span = np.zeros(labels.max() + 1 if len(labels) else 0)
+    for group in np.split(order, bounds):
+        images = np.unique(image_of[group])
+        if len(images) > 1:
+            span[labels[group[0]]] = dist[np.ix_(images, images)].max()
+    confusing = span > options.max_track_span
+    kept, scores = set(), {}
+    for (i, j), m in graph.pairs.items():
+        distinct = 1.0 - confusing[labels[offsets[i] + m[:, 0]]].mean()
+        scores[(i, j)] = distinct
+        if distinct >= options.min_distinct:
+            kept.add((i, j))
+    return kept, {
+        "method": "tracks",
+        "num_pairs": len(graph.pairs),
+        "num_kept": len(kept),
+        "num_tracks": int((span > 0).sum()),
+        "confusing_track_fraction": float(confusing.sum() / max((span > 0).sum(), 1)),
+        "path_network_diameter": float(np.max(dist[np.isfinite(dist)])) if len(dist) else 0.0,
+    }

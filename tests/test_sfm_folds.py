@@ -1,0 +1,160 @@
+"""Pair filters and fold diagnostics on synthetic match graphs (pure NumPy, no pycolmap).
+
+A camera walks along a row of points; matches are exact projections. A model with the
+true poses explains every neighbour pair; a folded one (the second half of the walk
+mapped back onto the first, as a row of identical plants invites) does not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ghsplat_jax.sfm import disambiguate as dis
+from ghsplat_jax.sfm import folds
+from ghsplat_jax.sfm.matchgraph import (
+    MatchGraph,
+    ModelPoses,
+    pair_agreement,
+    ray_agreement,
+)
+
+F, CX, CY = 300.0, 160.0, 120.0
+
+
+def _look_y(x: float) -> np.ndarray:
+    """world_to_cam (3,4) of a camera at (x, -2, 1) looking along +y (OpenCV axes)."""
+    r = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # rows: cam x = world x, cam y = -z, cam z = y
+    return np.column_stack([r, -r @ np.array([x, -2.0, 1.0])])
+
+
+def _project(w2c, points):
+    cam = points @ w2c[:, :3].T + w2c[:, 3]
+    xy = cam[:, :2] / cam[:, 2:3] * F + [CX, CY]
+    inside = (cam[:, 2] > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < 320) & (xy[:, 1] >= 0) & (xy[:, 1] < 240)
+    return xy, inside
+
+
+def _walk(n=12, step=0.4, seed=0):
+    """(graph, true poses): n cameras along x, points on a wall at y = 0."""
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([rng.uniform(-2, n * step + 2, 3000), rng.uniform(-0.2, 0.2, 3000),
+                              rng.uniform(0, 2, 3000)])
+    poses = [_look_y(k * step) for k in range(n)]
+    projections = [_project(p, points) for p in poses]
+    keypoints, index = [], []
+    for xy, inside in projections:
+        ids = np.flatnonzero(inside)
+        keypoints.append(xy[ids])
+        index.append({p: k for k, p in enumerate(ids)})
+    pairs = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            common = sorted(set(index[i]) & set(index[j]))
+            if len(common) >= 15:
+                pairs[(i, j)] = np.array([[index[i][p], index[j][p]] for p in common])
+    graph = MatchGraph([f"{k:03d}.png" for k in range(n)], list(range(1, n + 1)), [1] * n, keypoints, pairs)
+    return graph, poses
+
+
+def _model(poses) -> ModelPoses:
+    normalise = lambda xy: (np.asarray(xy) - [CX, CY]) / F  # noqa: E731
+    return ModelPoses({k: p for k, p in enumerate(poses)}, {k: normalise for k in range(len(poses))},
+                      {k: F for k in range(len(poses))})
+
+
+def test_ray_agreement_needs_points_in_front():
+    w2c_a, w2c_b = _look_y(0.0), _look_y(0.5)
+    points = np.array([[0.2, 0.0, 1.0], [0.3, 0.5, 1.5]])
+    xa = (points @ w2c_a[:, :3].T + w2c_a[:, 3])
+    xb = (points @ w2c_b[:, :3].T + w2c_b[:, 3])
+    xa, xb = xa[:, :2] / xa[:, 2:], xb[:, :2] / xb[:, 2:]
+    assert ray_agreement(xa, xb, w2c_a, w2c_b, np.radians(0.5)).all()
+    # the same matches with the second camera placed behind-to-front (baseline reversed) do not
+    assert not ray_agreement(xa, xb, w2c_a, _look_y(-0.5), np.radians(0.5)).any()
+
+
+def test_clean_walk_is_not_flagged_and_a_folded_one_is():
+    graph, poses = _walk()
+    options = folds.FoldOptions(window=2)
+    clean = folds.neighbour_contradictions(graph, _model(poses), options)
+    assert clean["num_checked"] > 10 and clean["num_contradicted"] == 0
+    # fold: cameras 6.. placed back over the first half (positions mirrored about x = 2.2)
+    folded = [p if k < 6 else _look_y(2 * 2.2 - k * 0.4) for k, p in enumerate(poses)]
+    bad = folds.neighbour_contradictions(graph, _model(folded), options)
+    assert bad["num_contradicted"] >= 1 and bad["num_contradicted"] > options.max_contradicted
+    assert ["005.png", "006.png"] == bad["contradicted"][0][:2]
+
+
+def test_chain_segments_must_agree_with_the_model_and_reach_its_views():
+    graph, poses = _walk(n=12)
+    options = folds.FoldOptions(min_segment=4)
+    segment = _model(poses[:8])  # the chain reached the first 8 views
+    clean = folds.chain_consistency(_model(poses[:8]), [segment], graph, options)
+    assert clean["num_segments"] == 1 and clean["num_inconsistent"] == 0 and clean["num_unverified"] == 0
+    folded = [p if k < 4 else _look_y(2 * 1.4 - k * 0.4) for k, p in enumerate(poses)]
+    bad = folds.chain_consistency(_model(folded), [segment], graph, options)
+    assert bad["num_inconsistent"] == 1 and bad["segments"][0]["centre_rmse_rel"] > options.max_chain_deviation
+    assert bad["num_unverified"] == 4 and bad["unverified"] == ["008.png", "009.png", "010.png", "011.png"]
+    report = folds.diagnose(graph, graph, _model(folded), _Reconstruction(), options, capture_order=True,
+                            num_models=1, chain=[segment])
+    assert report["fold_suspected"] and len(report["reasons"]) >= 2
+
+
+class _Reconstruction:
+    """Just enough of a pycolmap model for opposite_tracks: no points."""
+    points3D: dict = {}
+
+    def reg_image_ids(self):
+        return []
+
+
+def test_order_jumps_and_components():
+    graph, poses = _walk(n=8)
+    jumped = [p if k < 4 else _look_y(k * 0.4 + 5.0) for k, p in enumerate(poses)]
+    report = folds.order_jumps(graph, _model(jumped), folds.FoldOptions(jump_factor=6.0))
+    assert report["num_jumps"] == 1 and report["jumps"][0][:2] == ["003.png", "004.png"]
+    assert folds.graph_components(graph) == [8]
+    split = MatchGraph(graph.names, graph.image_ids, graph.camera_ids, graph.keypoints,
+                       {p: m for p, m in graph.pairs.items() if (p[0] < 4) == (p[1] < 4)})
+    assert folds.graph_components(split) == [4, 4]
+
+
+def test_rotation_chain_of_a_clean_walk_has_no_drift():
+    pytest.importorskip("cv2")
+    graph, poses = _walk(n=6)
+    chain = folds.rotation_chain(graph, _model(poses), folds.FoldOptions())
+    assert chain["num_links"] == 5 and chain["max_drift_deg"] < 0.5
+
+
+def test_order_filter_keeps_verified_long_pairs_and_drops_aliased_ones():
+    graph, poses = _walk()
+    options = dis.DisambiguateOptions(window=1)
+    # alias: pair (0, 5) matched to the wrong keypoints of image 5 (a look-alike elsewhere)
+    rng = np.random.default_rng(1)
+    aliased = dict(graph.pairs)
+    aliased[(0, 5)] = np.column_stack([np.arange(40), rng.permutation(len(graph.keypoints[5]))[:40]])
+    graph = MatchGraph(graph.names, graph.image_ids, graph.camera_ids, graph.keypoints, aliased)
+    keep, info = dis.order_filter(graph, [_model(poses)], options)
+    assert dis.sequential_pairs(graph, options) <= keep
+    assert (0, 2) in keep and (0, 5) not in keep
+    assert info["num_long_range_kept"] == info["num_long_range_pairs"] - 1
+    assert pair_agreement(graph, _model(poses), (0, 5), 1.0) < 0.5
+
+
+def test_track_filter_drops_pairs_made_of_confusing_tracks():
+    graph, _ = _walk(n=14, step=0.5)
+    # images 0 and 13 are far apart; give them matches that merge tracks across the walk
+    far = {**graph.pairs, (0, 13): np.column_stack([np.arange(40), np.arange(40)])}
+    graph = MatchGraph(graph.names, graph.image_ids, graph.camera_ids, graph.keypoints, far)
+    keep, info = dis.track_filter(graph, dis.DisambiguateOptions(path_neighbours=2, max_track_span=3))
+    assert (0, 13) not in keep
+    assert (0, 1) in keep and (5, 6) in keep
+    assert info["num_kept"] >= 0.7 * len(graph.pairs)  # confusion spills onto a few neighbours
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="window"):
+        dis.DisambiguateOptions(window=0).validate()
+    with pytest.raises(ValueError, match="min_agreement"):
+        dis.DisambiguateOptions(min_agreement=2.0).validate()
