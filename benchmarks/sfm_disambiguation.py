@@ -33,10 +33,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ghsplat_jax.io_utils import atomic_write, write_json  # noqa: E402
+from ghsplat_jax.io_utils import atomic_write, save_figure, write_json  # noqa: E402
 from ghsplat_jax.sfm import pipeline  # noqa: E402
 from ghsplat_jax.sfm.align import camera_centres  # noqa: E402
 from ghsplat_jax.sfm.evaluate import compare_poses, model_w2c  # noqa: E402
+from sfm_speed import _clean  # noqa: E402  (benchmarks/ is the script's folder)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sfm_disambiguation"
 
@@ -227,21 +228,8 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_title("SfM pair filters on procedural rows (hatched: refused, i.e. folded or partial)", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_write(path) as fh:
-        fig.savefig(fh, format="png", dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
-
-
-def _clean(obj):
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 def main() -> int:

@@ -246,6 +246,9 @@ def test_initial_scales_random_factor_and_clamp():
     # the clamp is a fraction of the extent (4.0 here)
     clamped = init(pts, init_scale_max=0.01).log_scales
     assert np.all(clamped <= math.log(0.04) + 1e-6) and np.any(clamped < knn[:, None] - 1e-3)
+    # a zero factor would give -inf log scales: refused up front
+    with pytest.raises(ConfigError, match="random_init_scale"):
+        TrainConfig(random_init_scale=0.0)
 
 def test_checkpoint_roundtrip_and_refuses_nan(tmp_path):
     st = _state()

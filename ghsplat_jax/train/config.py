@@ -126,6 +126,8 @@ class TrainConfig:
             raise ConfigError(f"sh_degree must be 0-3, got {self.sh_degree}")
         if self.downscale <= 0:
             raise ConfigError(f"downscale must be positive, got {self.downscale}")
+        if not self.random_init_scale > 0:
+            raise ConfigError(f"random_init_scale must be positive, got {self.random_init_scale}")
         if not isinstance(self.raster, RasterConfig):
             raise ConfigError(f"raster must be a RasterConfig, got {type(self.raster).__name__}")
 
