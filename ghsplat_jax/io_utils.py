@@ -84,3 +84,14 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
     return Path(path)
+
+
+def machine_info() -> dict:
+    """What a result was measured on: recorded beside every benchmark and experiment report."""
+    import platform
+
+    import jax
+
+    return {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
+            "python": platform.python_version(), "jax": jax.__version__, "jax_backend": jax.default_backend(),
+            "load_average": list(os.getloadavg())}

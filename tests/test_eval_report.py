@@ -85,9 +85,12 @@ def test_experiment_files_parse(tmp_path):
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "experiments"
-    for name in ("table1", "quick_cpu", "full_gpu"):
-        exp = load_experiment(root / f"{name}.toml", output=tmp_path / name)
-        assert exp.runs and all(r.config.data for r in exp.runs)
+    for path in sorted(root.glob("*.toml")):  # every preset of every file parses
+        import tomllib
+
+        for preset in ["full", *tomllib.loads(path.read_text()).get("presets", {})]:
+            exp = load_experiment(path, output=tmp_path / path.stem, preset=preset)
+            assert exp.runs and all(r.config.data for r in exp.runs), (path, preset)
     quick = load_experiment(root / "quick_cpu.toml", output=tmp_path)
     budget = [r for r in quick.runs if r.variant == "budget"]
     assert budget and all(r.config.strategy == "budget" and r.config.steps == 300 for r in budget)
@@ -100,3 +103,43 @@ def test_experiment_files_parse(tmp_path):
     bad.write_text('name = "x"\n')
     with pytest.raises(ConfigError, match="scenes"):
         load_experiment(bad)
+
+
+def test_presets_lay_over_the_file_and_keep_their_own_folders(tmp_path):
+    exp_file = tmp_path / "e.toml"
+    exp_file.write_text('''name = "e"
+output = "runs/e"
+results = "res/e"
+[train]
+steps = 1000
+lr_opacity = 0.04
+[[scenes]]
+name = "a"
+data = "da"
+[[scenes]]
+name = "b"
+data = "db"
+[presets.quick]
+train = { steps = 20 }
+[[presets.quick.scenes]]
+name = "a"
+data = "tiny"
+''')
+    full = load_experiment(exp_file)
+    assert [r.config.steps for r in full.runs] == [1000, 1000] and full.preset == "full"
+    assert full.output.as_posix() == "runs/e" and full.results.as_posix() == "res/e"
+    quick = load_experiment(exp_file, preset="quick")
+    assert [(r.scene, r.config.data, r.config.steps) for r in quick.runs] == [("a", "tiny", 20)]
+    assert quick.runs[0].config.lr_opacity == 0.04  # [train] keys the preset does not name stay
+    assert quick.output.as_posix() == "runs/e_quick" and quick.results.as_posix() == "res/e/quick"
+    moved = load_experiment(exp_file, output=tmp_path / "o", preset="quick")
+    assert moved.output == moved.results == tmp_path / "o"  # --output keeps tests out of the repo
+    with pytest.raises(ConfigError, match="e.toml.*no preset 'slow'.*full, quick"):
+        load_experiment(exp_file, preset="slow")
+    text = exp_file.read_text()
+    exp_file.write_text(text.replace("[presets.quick]\n", "[presets.quick]\nstepz = 3\n"))
+    with pytest.raises(ConfigError, match=r"unknown keys \['stepz'\] in \[presets.quick\]"):
+        load_experiment(exp_file, preset="quick")
+    exp_file.write_text(text + "stepz = 3\n")  # lands in the preset's scene table
+    with pytest.raises(ConfigError, match=r"e.toml: unknown keys \['stepz'\] in scene 'a'"):
+        load_experiment(exp_file, preset="quick")

@@ -8,7 +8,7 @@ import io
 import math
 from pathlib import Path
 
-from ghsplat_jax.io_utils import atomic_write
+from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
 from ghsplat_jax.train.run_dir import read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
@@ -117,4 +117,5 @@ def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path
                                                                  "render s/view")))
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
-    return [md, csv_path]
+    js = write_json(folder / "results.json", {"title": title, "machine": machine_info(), "rows": rows})
+    return [md, csv_path, js]

@@ -12,7 +12,10 @@ HELP = "run an experiment file: scenes x config variants, then tables and charts
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("experiment", help="experiment TOML file (see experiments/)")
+    p.add_argument("--preset", default="full",
+                   help="a [presets.NAME] table of the file laid over it, e.g. quick (default: full, the file itself)")
     p.add_argument("--output", help="folder for the runs and reports (default: the file's `output`)")
+    p.add_argument("--results", help="folder for the reports (default: the file's `results`, else the runs' folder)")
     p.add_argument("--only", action="append", default=[], metavar="SCENE[/VARIANT]", help="run only these")
     p.add_argument("--steps", type=int, help="override the step count of every run")
     p.add_argument("--list", action="store_true", help="list the planned runs and their state, train nothing")
@@ -38,7 +41,7 @@ def main(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     overrides = {"steps": args.steps} if args.steps is not None else None
     try:
-        exp = load_experiment(args.experiment, args.output, overrides)
+        exp = load_experiment(args.experiment, args.output, overrides, args.preset, args.results)
     except ConfigError as exc:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2

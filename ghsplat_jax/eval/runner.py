@@ -14,6 +14,8 @@ Experiment file layout (see experiments/*.toml):
     [[variants]]                   # optional; one "default" variant when absent
     name = "budget"
     train = { strategy = "budget", max_surfels = 20000 }
+    [presets.quick]                # `--preset quick`; the file itself is the "full" preset
+    train = { steps = 300 }        # merged over [train]; `scenes` / `variants` here replace the lists
 """
 
 from __future__ import annotations
@@ -52,6 +54,8 @@ class Experiment:
     output: Path
     runs: list[PlannedRun]
     source: Path
+    results: Path  # where the reports go (the file's `results`, else `output`)
+    preset: str = "full"
 
 
 def _table(value, what: str, source) -> dict:
@@ -64,11 +68,43 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
     name = _table(entry, f"{kind}[{i}]", source).get("name")
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
+    unknown = set(entry) - ({"name", "data", "train"} if kind == "scenes" else {"name", "train"})
+    if unknown:
+        raise ConfigError(f"{source}: unknown keys {sorted(unknown)} in {kind[:-1]} {name!r}")
     return name
 
 
-def load_experiment(path, output: str | os.PathLike | None = None, overrides: dict | None = None) -> Experiment:
-    """Parse and validate an experiment file into planned runs (nothing is trained)."""
+_KEYS = {"name", "description", "output", "results", "train", "scenes", "variants"}
+
+
+def _apply_preset(spec: dict, preset: str, path) -> dict:
+    """The spec with `[presets.PRESET]` laid over it: `train` merged key by key, every other key
+    replaced; the preset's runs and reports go to their own folders (OUTPUT_PRESET, RESULTS/PRESET)."""
+    presets = _table(spec.pop("presets", {}), "[presets]", path)
+    if preset == "full":
+        return spec
+    if preset not in presets:
+        known = ", ".join(["full", *sorted(presets)])
+        raise ConfigError(f"{path}: no preset {preset!r} (this file has: {known})")
+    over = _table(presets[preset], f"[presets.{preset}]", path)
+    unknown = set(over) - _KEYS
+    if unknown:
+        raise ConfigError(f"{path}: unknown keys {sorted(unknown)} in [presets.{preset}]")
+    name = spec.get("name", Path(path).stem)
+    out = dict(spec, **over)
+    out["train"] = {**_table(spec.get("train", {}), "[train]", path), **_table(over.get("train", {}),
+                                                                             f"[presets.{preset}] train", path)}
+    if "output" not in over:
+        out["output"] = f"{spec.get('output', Path('runs') / name)}_{preset}"
+    if "results" not in over and "results" in spec:
+        out["results"] = str(Path(spec["results"]) / preset)
+    return out
+
+
+def load_experiment(path, output: str | os.PathLike | None = None, overrides: dict | None = None,
+                    preset: str = "full", results: str | os.PathLike | None = None) -> Experiment:
+    """Parse and validate an experiment file into planned runs (nothing is trained).
+    `output` moves the runs and, unless `results` is given, the reports too."""
     import tomllib
 
     path = Path(path)
@@ -78,11 +114,12 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
         raise ConfigError(f"{path}: cannot read experiment ({exc.strerror})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    unknown = set(spec) - {"name", "description", "output", "train", "scenes", "variants"}
+    unknown = set(spec) - _KEYS - {"presets"}
     if unknown:
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
+    spec = _apply_preset(spec, preset, path)
     name = spec.get("name", path.stem)
-    for key in ("name", "description", "output"):
+    for key in ("name", "description", "output", "results"):
         if not isinstance(spec.get(key, ""), str):
             raise ConfigError(f"{path}: '{key}' must be a string, got {spec[key]!r}")
     scenes = spec.get("scenes")
@@ -111,7 +148,8 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
             if overrides:
                 cfg = apply_overrides(cfg, overrides, "command line")
             runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
-    return Experiment(name, spec.get("description", ""), out_root, runs, path)
+    report_root = Path(results or output or spec.get("results") or out_root)
+    return Experiment(name, spec.get("description", ""), out_root, runs, path, report_root, preset)
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
@@ -196,7 +234,8 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     rows = [row for r in exp.runs if (row := run_row(r.out_dir, r.scene, r.variant, exp.name)) is not None]
     if not rows:
         return rows, []
-    title = f"{exp.name}: {exp.description}" if exp.description else exp.name
-    reports = write_results(rows, exp.output, title) + write_table1(rows, exp.output, f"Table 1 ({exp.name})")
-    reports += write_charts(rows, exp.output, exp.name)
+    name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
+    title = f"{name}: {exp.description}" if exp.description else name
+    reports = write_results(rows, exp.results, title) + write_table1(rows, exp.results, f"Table 1 ({name})")
+    reports += write_charts(rows, exp.results, name)
     return rows, reports
