@@ -18,7 +18,7 @@ COMMANDS = {
     "sfm": "ghsplat_jax.sfm.command",
     "train": "ghsplat_jax.commands.train",
     "eval": "ghsplat_jax.eval.command",
-    "run": "ghsplat_jax.eval.run_command",
+    "run": "ghsplat_jax.commands.run",
     "export": "ghsplat_jax.scene.export_command",
     "compose": "ghsplat_jax.scene.compose_command",
     "simulate": "ghsplat_jax.sim.command",

@@ -56,6 +56,8 @@ class Experiment:
     source: Path
     results: Path  # where the reports go (the file's `results`, else `output`)
     preset: str = "full"
+    kind: str = "train"  # "train" (scenes x variants) or a study that commands/run.py dispatches
+    spec: dict = dataclasses.field(default_factory=dict)  # the file with its preset applied (for studies)
 
 
 def _table(value, what: str, source) -> dict:
@@ -74,7 +76,8 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
     return name
 
 
-_KEYS = {"name", "description", "output", "results", "train", "scenes", "variants"}
+_KEYS = {"name", "description", "output", "results", "kind", "prepare", "cases", "train", "scenes", "variants"}
+KINDS = ("train", "stability")
 
 
 def _apply_preset(spec: dict, preset: str, path) -> dict:
@@ -119,11 +122,14 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
     spec = _apply_preset(spec, preset, path)
     name = spec.get("name", path.stem)
-    for key in ("name", "description", "output", "results"):
+    for key in ("name", "description", "output", "results", "kind"):
         if not isinstance(spec.get(key, ""), str):
             raise ConfigError(f"{path}: '{key}' must be a string, got {spec[key]!r}")
-    scenes = spec.get("scenes")
-    if not isinstance(scenes, list) or not scenes:
+    kind = spec.get("kind", "train")
+    if kind not in KINDS:
+        raise ConfigError(f"{path}: kind must be one of {KINDS}, got {kind!r}")
+    scenes = spec.get("scenes", [] if kind != "train" else None)
+    if not isinstance(scenes, list) or (kind == "train" and not scenes):
         raise ConfigError(f"{path}: an experiment needs at least one [[scenes]] entry")
     variants = spec.get("variants") or [{"name": "default"}]
     if not isinstance(variants, list):
@@ -149,7 +155,7 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
                 cfg = apply_overrides(cfg, overrides, "command line")
             runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
     report_root = Path(results or output or spec.get("results") or out_root)
-    return Experiment(name, spec.get("description", ""), out_root, runs, path, report_root, preset)
+    return Experiment(name, spec.get("description", ""), out_root, runs, path, report_root, preset, kind, spec)
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
