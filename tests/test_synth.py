@@ -197,6 +197,26 @@ def test_handheld_path_circles_the_row_with_more_views_at_the_ends(small_scene):
     np.testing.assert_array_equal(np.asarray(again[5].world_to_cam), np.asarray(cams[5].world_to_cam))
 
 
+@pytest.mark.parametrize("end", ["x0", "x1"])
+def test_one_end_walk_covers_that_end_and_its_share_of_the_row(small_scene, end):
+    row = small_scene.rows[1]
+    path = capture.PathConfig(end=end, segment_fraction=0.5)
+    cams = capture.capture_path(small_scene, "handheld", 30, row=1, width=64, height=48, seed=3, config=path)
+    centres = np.array([np.asarray(c.center) for c in cams])
+    mid = (row.x0 + row.x1) / 2
+    near = centres[:, 0] > mid - 1e-6 if end == "x1" else centres[:, 0] < mid + 1e-6
+    assert near.all()  # never walks past the middle of the row
+    beyond = centres[:, 0] > row.x1 if end == "x1" else centres[:, 0] < row.x0
+    assert beyond.sum() >= 3  # rounds the end
+    assert set(np.sign(np.round(centres[:, 1] - row.y, 3))) >= {-1.0, 1.0}  # both aisles
+    steps = np.linalg.norm(np.diff(centres[:, :2], axis=0), axis=1)
+    assert steps.max() < 3 * np.median(steps)  # one continuous walk, no jump across the row
+    with pytest.raises(ValueError, match="unknown row end"):
+        capture.capture_path(small_scene, "handheld", 4, config=capture.PathConfig(end="middle"))
+    with pytest.raises(ValueError, match="segment_fraction"):
+        capture.capture_path(small_scene, "handheld", 4, config=capture.PathConfig(end=end, segment_fraction=0))
+
+
 def test_robot_path_drives_both_aisles_at_robot_height(small_scene):
     cams = capture.capture_path(small_scene, "robot", 10, row=0, width=64, height=48)
     row = small_scene.rows[0]

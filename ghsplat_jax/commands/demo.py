@@ -101,40 +101,13 @@ def _marker_toml(tag_id: int, x: float, y: float, facing_x: int) -> str:
             f"facing = [{facing_x}, 0, 0]\nbacking = true\n")
 
 
-def _poses(model: Path) -> dict:
-    """{image name: world_to_cam} of a COLMAP model folder (binary or text)."""
-    import numpy as np
-
-    from ghsplat_jax.core.quaternions import to_rotation_matrix_np
-    from ghsplat_jax.data import colmap
-
-    poses = {}
-    for image in colmap.read_images(colmap.model_file(model, "images")).values():
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = to_rotation_matrix_np(image.qvec), image.tvec
-        poses[Path(image.name).name] = w2c
-    return poses
-
-
-def sfm_accuracy(sfm_model: Path, truth_model: Path) -> dict | None:
-    """Pose errors of the SfM cameras against the generator's exact ones (similarity-aligned)."""
-    import numpy as np
-
-    from ghsplat_jax.sfm.evaluate import compare_poses
-
-    est, ref = _poses(sfm_model), _poses(truth_model)
-    names = sorted(set(est) & set(ref))
-    if len(names) < 3:
-        return None
-    return compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
-
-
 def _first(folder: Path, pattern: str) -> Path | None:
     found = sorted(folder.rglob(pattern)) if folder.is_dir() else []
     return found[0] if found else None
 
 
 def main(args) -> int:
+    from ghsplat_jax.sfm.evaluate import compare_model_dirs
     from ghsplat_jax.train import run_dir
 
     mode = SETTINGS["quick" if args.quick else "full"]
@@ -156,7 +129,7 @@ def main(args) -> int:
         report_file = out / "sfm" / "sfm_report.json"
         sfm_report = json.loads(report_file.read_text()) if report_file.is_file() else None
         if sfm_report and (out / "sfm" / "sparse" / "0").is_dir():
-            sfm_report["accuracy"] = sfm_accuracy(out / "sfm" / "sparse" / "0", out / "row" / "sparse" / "0")
+            sfm_report["accuracy"] = compare_model_dirs(out / "sfm" / "sparse" / "0", out / "row" / "sparse" / "0")
     shutil.rmtree(out / "run", ignore_errors=True)
     stages.run("train", "train", "--data", out / "row", "--out", out / "run", "--steps", mode["steps"],
                "--downscale", mode["downscale"], "--no-progress")

@@ -35,6 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args) -> int:
     from ghsplat_jax.eval.runner import load_experiment, run_experiment
+    from ghsplat_jax.studies.segments import prepare_segments
     from ghsplat_jax.train.config import ConfigError
     from ghsplat_jax.train.run_dir import has_checkpoint
 
@@ -61,8 +62,14 @@ def main(args) -> int:
         except ImportError:
             print('ghsplat run: --executor ray needs Ray: pip install -e ".[ray]"', file=sys.stderr)
             return 2
+    try:
+        unusable = {} if args.report_only else prepare_segments(exp)  # scenes whose data could not be made
+    except ConfigError as exc:
+        print(f"ghsplat run: {exc}", file=sys.stderr)
+        return 2
     result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
-                            executor=args.executor, ray_options=ray_options)
+                            executor=args.executor, ray_options=ray_options, exclude=set(unusable))
+    result["failed"] = [(scene, msg) for scene, msg in unusable.items()] + result["failed"]
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
     print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))

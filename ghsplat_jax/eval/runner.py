@@ -70,7 +70,7 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
     name = _table(entry, f"{kind}[{i}]", source).get("name")
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
-    unknown = set(entry) - ({"name", "data", "train"} if kind == "scenes" else {"name", "train"})
+    unknown = set(entry) - ({"name", "data", "train", "segment"} if kind == "scenes" else {"name", "train"})
     if unknown:
         raise ConfigError(f"{source}: unknown keys {sorted(unknown)} in {kind[:-1]} {name!r}")
     return name
@@ -210,12 +210,14 @@ def _run_locally(runs: list[PlannedRun], stop_on_error: bool) -> list[tuple[str,
 
 
 def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
-                   evaluate_only: bool = False, executor: str = "local", ray_options: dict | None = None) -> dict:
+                   evaluate_only: bool = False, executor: str = "local", ray_options: dict | None = None,
+                   exclude: set[str] = frozenset()) -> dict:
     """Train every unfinished run (resuming interrupted ones), then write the reports.
     executor: "local" (one run after another in this process) or "ray" (one Ray task per run,
     see eval/ray_executor.py; `ray_options` are its keyword arguments).
     Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
-    selected = [r for r in exp.runs if not only or r.scene in only or f"{r.scene}/{r.variant}" in only]
+    selected = [r for r in exp.runs if r.scene not in exclude
+                and (not only or r.scene in only or f"{r.scene}/{r.variant}" in only)]
     todo = [] if evaluate_only else [r for r in selected if not r.finished]
     for r in selected:
         if r.finished:

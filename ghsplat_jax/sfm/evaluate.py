@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ghsplat_jax.sfm.align import camera_centres
@@ -72,3 +74,26 @@ def compare_models(estimate, reference) -> dict:
     result = compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
     result["missing_from_estimate"] = sorted(set(ref) - set(est))
     return result
+
+
+def model_dir_w2c(model) -> dict[str, np.ndarray]:
+    """{image file name: world_to_cam (4,4)} of a COLMAP model folder (binary or text)."""
+    from ghsplat_jax.core.quaternions import to_rotation_matrix_np
+    from ghsplat_jax.data import colmap
+
+    poses = {}
+    for image in colmap.read_images(colmap.model_file(Path(model), "images")).values():
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = to_rotation_matrix_np(image.qvec), image.tvec
+        poses[Path(image.name).name] = w2c
+    return poses
+
+
+def compare_model_dirs(estimate, reference) -> dict | None:
+    """compare_poses of two COLMAP model folders over their common images (None below 3),
+    e.g. an SfM model against the generator's exact cameras."""
+    est, ref = model_dir_w2c(estimate), model_dir_w2c(reference)
+    names = sorted(set(est) & set(ref))
+    if len(names) < 3:
+        return None
+    return compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))

@@ -3,7 +3,8 @@
 - "handheld": a person walks a closed loop around one row (down one aisle, round the open
   end, back up the other aisle, round the closed end) at a fixed frame rate, slowing down
   at the row ends (so more views there), camera pointed at the row with smooth height,
-  tilt, pan and roll jitter.
+  tilt, pan and roll jitter. With `PathConfig.end` the walk is a U round one end of the
+  row only: the paper captured each row as two segments, one from each end.
 - "robot": a ground robot drives down the aisle on each side of the row at constant speed
   with a side-looking camera at robot height.
 
@@ -30,6 +31,9 @@ class PathConfig:
     angle_jitter_deg: float = 3.0   # pan / tilt / roll (smooth)
     fov_x_deg: float = 65.0
     fps: float = 2.0
+    end: str | None = None          # handheld: None walks round the whole row; "x0" / "x1" walks a
+    #                                 U round that end only (one row segment, as the paper captured)
+    segment_fraction: float = 0.5   # share of the row's length a one-end walk covers
 
 
 def frame_times(n_views: int, fps: float) -> np.ndarray:
@@ -60,27 +64,43 @@ def _camera(eye, target, K, width, height, jitter=np.zeros(3)) -> Camera:
     return Camera(K, w2c.astype(np.float32), width, height)
 
 
-def _stadium(row, d: float, slowdown: float, n_views: int):
-    """Positions (n,2), look-at points on the row axis (n,2) and loop phase (n,) of a walk around
-    the row at lateral distance d, sampled uniformly in time with slower walking on the end arcs."""
-    x0, x1, y = row.x0, row.x1, row.y
-    straight, arc = x1 - x0, np.pi * d
-    # segments: +y aisle (x0 -> x1), open-end arc, -y aisle (x1 -> x0), closed-end arc
-    lengths = np.array([straight, arc, straight, arc])
-    durations = lengths / np.array([1.0, slowdown, 1.0, slowdown])
+def _walk_pieces(row, d: float, end: str | None, fraction: float) -> list[tuple]:
+    """The walk as pieces: ("aisle", x_from, x_to, side) along the aisle at y = row.y + side * d,
+    or ("arc", x_centre, start_angle) half-circles round a row end. end=None: the closed loop
+    round the whole row; "x0" / "x1": a U round that end covering `fraction` of the row."""
+    x0, x1 = row.x0, row.x1
+    if end is None:
+        return [("aisle", x0, x1, 1.0), ("arc", x1, np.pi / 2), ("aisle", x1, x0, -1.0), ("arc", x0, -np.pi / 2)]
+    cut = fraction * (x1 - x0)
+    if end == "x1":
+        return [("aisle", x1 - cut, x1, 1.0), ("arc", x1, np.pi / 2), ("aisle", x1, x1 - cut, -1.0)]
+    if end == "x0":
+        return [("aisle", x0 + cut, x0, -1.0), ("arc", x0, -np.pi / 2), ("aisle", x0, x0 + cut, 1.0)]
+    raise ValueError(f"unknown row end {end!r} (use 'x0', 'x1' or None for the whole row)")
+
+
+def _stadium(row, d: float, slowdown: float, n_views: int, end: str | None = None, fraction: float = 1.0):
+    """Positions (n,2), look-at points on the row axis (n,2) and walk phase (n,) of a walk round
+    the row (or round one end of it, see _walk_pieces) at lateral distance d, sampled uniformly
+    in time with slower walking on the end arcs."""
+    pieces = _walk_pieces(row, d, end, fraction)
+    lengths = np.array([abs(p[2] - p[1]) if p[0] == "aisle" else np.pi * d for p in pieces])
+    durations = lengths / np.array([1.0 if p[0] == "aisle" else slowdown for p in pieces])
     tau = (np.arange(n_views) + 0.5) / n_views * durations.sum()
     ends = np.cumsum(durations)
-    seg = np.searchsorted(ends, tau, side="right").clip(0, 3)
+    seg = np.searchsorted(ends, tau, side="right").clip(0, len(pieces) - 1)
     f = (tau - np.concatenate([[0], ends[:-1]])[seg]) / durations[seg]
     pos, target = np.zeros((n_views, 2)), np.zeros((n_views, 2))
     for i, (s, u) in enumerate(zip(seg, f)):
-        if s == 0:
-            pos[i], target[i] = [x0 + u * straight, y + d], [x0 + u * straight, y]
-        elif s == 2:
-            pos[i], target[i] = [x1 - u * straight, y - d], [x1 - u * straight, y]
+        piece = pieces[s]
+        if piece[0] == "aisle":
+            _, xa, xb, side = piece
+            x = xa + u * (xb - xa)
+            pos[i], target[i] = [x, row.y + side * d], [x, row.y]
         else:
-            centre = np.array([x1, y]) if s == 1 else np.array([x0, y])
-            angle = np.pi / 2 - np.pi * u + (0 if s == 1 else np.pi)
+            _, xc, start = piece
+            angle = start - np.pi * u
+            centre = np.array([xc, row.y])
             pos[i], target[i] = centre + d * np.array([np.cos(angle), np.sin(angle)]), centre
     return pos, target, tau / durations.sum()
 
@@ -102,7 +122,9 @@ def capture_path(scene: Scene, kind: str = "handheld", n_views: int = 40, *, row
 
     if kind == "handheld":
         h = pc.height if pc.height is not None else 1.15
-        pos, target, phase = _stadium(r, d, pc.end_slowdown, n_views)
+        if not 0 < pc.segment_fraction <= 1:
+            raise ValueError(f"segment_fraction must be in (0, 1], got {pc.segment_fraction}")
+        pos, target, phase = _stadium(r, d, pc.end_slowdown, n_views, pc.end, pc.segment_fraction)
         heights = h + _smooth_jitter(rng, phase, pc.height_jitter) + rng.normal(0, pc.height_jitter / 6, n_views)
         angles = np.stack([_smooth_jitter(rng, phase, np.deg2rad(pc.angle_jitter_deg)) for _ in range(3)], -1)
         angles += rng.normal(0, np.deg2rad(pc.angle_jitter_deg) / 5, angles.shape)

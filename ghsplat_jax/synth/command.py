@@ -18,6 +18,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--path", choices=("handheld", "robot"), default="handheld", help="capture path kind")
     parser.add_argument("--row", type=int, default=0, help="row to capture (default 0)")
+    parser.add_argument("--end", choices=("x0", "x1"), default=None,
+                        help="handheld: walk round this end of the row only (one row segment)")
+    parser.add_argument("--segment-fraction", type=float, default=0.5,
+                        help="with --end: share of the row's length the walk covers (default 0.5)")
     parser.add_argument("--fov", type=float, default=65.0, help="horizontal field of view, degrees")
     parser.add_argument("--fps", type=float, default=2.0, help="frame rate of the capture (time stamps)")
     parser.add_argument("--seed", type=int, default=None, help="override the config's seed")
@@ -44,7 +48,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cameras = capture.capture_path(world, args.path, args.views, row=args.row, width=args.width,
                                        height=args.height, seed=cfg.seed,
-                                       config=capture.PathConfig(fov_x_deg=args.fov, fps=args.fps))
+                                       config=capture.PathConfig(fov_x_deg=args.fov, fps=args.fps, end=args.end,
+                                                                 segment_fraction=args.segment_fraction))
         out = dataset.write_dataset(world, cameras, args.out, n_points=args.points, fps=args.fps,
                                     meshes=not args.no_mesh, overwrite=args.overwrite, progress=True)
     except (ValueError, FileExistsError) as exc:

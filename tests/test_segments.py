@@ -1,0 +1,57 @@
+"""Row segments for `ghsplat run` ([prepare]): settings checked with errors naming the file, and a
+segment whose SfM is not "ok" is reported and never trained."""
+
+import json
+
+import pytest
+
+from ghsplat_jax.cli import main as ghsplat
+from ghsplat_jax.eval.runner import load_experiment
+from ghsplat_jax.studies.segments import prepare_segments
+from ghsplat_jax.train.config import ConfigError
+
+EXPERIMENT = """name = "seg"
+output = "{out}/runs"
+[prepare]
+views = 12
+{extra}
+[train]
+steps = 3
+[[scenes]]
+name = "row0_x0"
+data = "{out}/gh/row0_x0/sfm"
+segment = {{ row = 0, end = "{end}" }}
+"""
+
+
+def _write(tmp_path, extra="", end="x0"):
+    path = tmp_path / "seg.toml"
+    path.write_text(EXPERIMENT.format(out=tmp_path, extra=extra, end=end))
+    return path
+
+
+@pytest.mark.parametrize("extra, end, message", [
+    ("viewz = 3", "x0", r"seg.toml: unknown keys \['viewz'\] in \[prepare\]"),
+    ("width = 'wide'", "x0", r"seg.toml \[prepare\] width must be an integer"),
+    ("sfm = { mapper = 'magic' }", "x0", r"seg.toml \[prepare\] sfm: mapper must be one of"),
+    ("sfm = { max_size = 10 }", "x0", r"unknown keys \['max_size'\] in \[prepare\] sfm"),
+    ("greenhouse = { layout = { rowz = 2 } }", "x0", r"seg.toml \[prepare\] greenhouse.*layout.rowz"),
+    ("", "middle", r"segment must be \{ row = N, end"),
+])
+def test_prepare_settings_are_checked(tmp_path, extra, end, message):
+    with pytest.raises(ConfigError, match=message):
+        prepare_segments(load_experiment(_write(tmp_path, extra, end)))
+
+
+def test_a_folded_segment_is_reported_and_not_trained(tmp_path, capsys):
+    sfm = tmp_path / "gh" / "row0_x0" / "sfm"
+    (sfm / "sparse" / "0").mkdir(parents=True)
+    (sfm / "sfm_report.json").write_text(json.dumps({"status": "folded", "num_images": 12, "num_registered": 12}))
+    path = _write(tmp_path)
+    unusable = prepare_segments(load_experiment(path))
+    assert list(unusable) == ["row0_x0"] and "folded" in unusable["row0_x0"]
+    assert "| row0_x0 | folded | 12 | 12 |" in (tmp_path / "runs" / "segments.md").read_text()
+    assert ghsplat(["run", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "row0_x0 failed: SfM status 'folded'" in err and str(sfm / "sfm_report.json") in err
+    assert not (tmp_path / "runs" / "row0_x0").exists()  # nothing was trained on it
