@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from ghsplat_jax.eval.charts import scatter_figure, scatter_series, write_charts
+from ghsplat_jax.eval.charts import pareto_front, scatter_figure, scatter_series, write_charts, write_pareto_charts
 from ghsplat_jax.eval.metrics import image_metrics, summarize
 from ghsplat_jax.eval.report import collect_runs, table1_markdown, write_results, write_table1
 from ghsplat_jax.eval.runner import load_experiment
@@ -143,3 +143,26 @@ data = "tiny"
     exp_file.write_text(text + "stepz = 3\n")  # lands in the preset's scene table
     with pytest.raises(ConfigError, match=r"e.toml: unknown keys \['stepz'\] in scene 'a'"):
         load_experiment(exp_file, preset="quick")
+
+
+def test_pareto_front_and_its_chart(tmp_path):
+    # (cost, quality): b is beaten by a (cheaper and better); c ties a's quality at a higher cost
+    assert pareto_front([(1.0, 30.0), (2.0, 29.0), (3.0, 30.0), (4.0, 31.0), (0.5, 20.0)]) == [
+        True, False, False, True, True]
+    rows = [{"scene": "s", "variant": v, "step_seconds": c, "psnr": q}
+            for v, c, q in (("default", 1.0, 30.0), ("tile16", 2.0, 29.0), ("box3", 4.0, 31.0))]
+    rows.append({"scene": "alone", "variant": "default", "step_seconds": 1.0, "psnr": 20.0})  # one variant: no chart
+    made = write_pareto_charts(rows, tmp_path, "t")
+    assert [p.name for p in made] == ["pareto_s.png", "pareto.json"]
+    front = json.loads(made[1].read_text())["scenes"]["s"]
+    assert {v: f["on_front"] for v, f in front.items()} == {"default": True, "tile16": False, "box3": True}
+
+
+def test_median_step_seconds_skips_the_clock_restart_of_a_resume(tmp_path):
+    from ghsplat_jax.train.run_dir import STATS_NAME, median_step_seconds
+
+    assert median_step_seconds(tmp_path) is None
+    elapsed = [30.0, 30.5, 31.0, 31.7, 12.0, 12.5]  # compile-heavy first step; resumed from an older checkpoint
+    (tmp_path / STATS_NAME).write_text("".join(json.dumps({"step": i, "elapsed_s": e}) + "\n"
+                                               for i, e in enumerate(elapsed)))
+    assert median_step_seconds(tmp_path) == pytest.approx(0.5)

@@ -62,3 +62,51 @@ def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
         made.append(save_figure(scatter_figure(series, xlabel, ylabel, title, log_x=True), folder / f"{stem}.png",
                                 dpi=120))
     return made
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
+    """Which (cost, quality) points no other point beats: cost no higher and quality no lower,
+    one of them strictly."""
+    return [not any(c2 <= c and q2 >= q and (c2 < c or q2 > q) for c2, q2 in points) for c, q in points]
+
+
+def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "step_seconds",
+                        quality: str = "psnr", reference: str = "default") -> list[Path]:
+    """Per scene with two or more variants: quality against cost, the Pareto front drawn and the
+    `reference` variant (the chosen defaults) ringed; pareto.json says which variants are on it."""
+    from matplotlib.figure import Figure
+
+    folder = Path(folder)
+    by_scene: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get(cost) is not None and r.get(quality) is not None:
+            by_scene.setdefault(r["scene"], []).append(r)
+    summary, made = {}, []
+    for scene, runs in sorted(by_scene.items()):
+        if len(runs) < 2:
+            continue
+        on_front = pareto_front([(r[cost], r[quality]) for r in runs])
+        summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}
+                          for r, f in zip(runs, on_front)}
+        fig = Figure(figsize=(6.4, 4.4), dpi=120)
+        ax = fig.subplots()
+        front = sorted((r[cost], r[quality]) for r, f in zip(runs, on_front) if f)
+        ax.step([c for c, _ in front], [q for _, q in front], where="post", color="0.5", lw=1, label="Pareto front")
+        for r, f in zip(runs, on_front):
+            ax.scatter(r[cost], r[quality], s=40, zorder=3, color="C0" if f else "C7")
+            if r["variant"] == reference:
+                ax.scatter(r[cost], r[quality], s=160, facecolors="none", edgecolors="C3", zorder=4,
+                           label=f"{reference} (chosen)")
+            ax.annotate(r["variant"], (r[cost], r[quality]), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        ax.set_xscale("log")
+        ax.set_xlabel(cost.replace("_", " "))
+        ax.set_ylabel(quality.upper() if quality == "psnr" else quality)
+        ax.set_title(f"{title}: {scene}" if title else scene)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        made.append(save_figure(fig, folder / f"pareto_{scene}.png", dpi=120))
+    if summary:
+        made.append(write_json(folder / "pareto.json", {"cost": cost, "quality": quality, "reference": reference,
+                                                        "scenes": summary}))
+    return made

@@ -9,13 +9,13 @@ import math
 from pathlib import Path
 
 from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
-from ghsplat_jax.train.run_dir import read_metrics
+from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
 
 RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds",
-                  "steps", "render_seconds_per_view", "run_dir")
+                  "step_seconds", "steps", "render_seconds_per_view", "run_dir")
 
 
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
@@ -30,7 +30,7 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
     return {
         "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
         "psnr": s.get("psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"), "num_gaussians": m.get("num_gaussians"),
-        "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
+        "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
         "render_seconds_per_view": m.get("render_seconds_per_view"), "run_dir": str(run_dir),
     }
 
@@ -41,6 +41,7 @@ def collect_runs(run_dirs) -> list[dict]:
 
 
 _FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "ssim": "{:.3f}", "num_gaussians": "{:,}", "train_seconds": "{:.0f}",
+            "step_seconds": "{:.3f}",
             "render_seconds_per_view": "{:.3f}"}
 
 
@@ -109,12 +110,12 @@ def write_table1(rows: list[dict], folder, title: str = "Table 1") -> list[Path]
 def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path]:
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
-    cols = ("scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds", "steps",
-            "render_seconds_per_view")
+    cols = ("scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds", "step_seconds",
+            "steps", "render_seconds_per_view")
     with atomic_write(md, "w") as fh:
         fh.write(f"# {title}\n\n" + markdown_table(rows, cols, ("scene", "variant", "split", "PSNR (dB)", "L1",
-                                                                 "SSIM", "Gaussians", "train s", "steps",
-                                                                 "render s/view")))
+                                                                 "SSIM", "Gaussians", "train s", "median step s",
+                                                                 "steps", "render s/view")))
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
     js = write_json(folder / "results.json", {"title": title, "machine": machine_info(), "rows": rows})

@@ -236,7 +236,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
 
 def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     """Rows of every finished run, and the reports written into the experiment folder."""
-    from ghsplat_jax.eval.charts import write_charts
+    from ghsplat_jax.eval.charts import write_charts, write_pareto_charts
     from ghsplat_jax.eval.report import run_row, write_results, write_table1
 
     rows = [row for r in exp.runs if (row := run_row(r.out_dir, r.scene, r.variant, exp.name)) is not None]
@@ -245,5 +245,5 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
     title = f"{name}: {exp.description}" if exp.description else name
     reports = write_results(rows, exp.results, title) + write_table1(rows, exp.results, f"Table 1 ({name})")
-    reports += write_charts(rows, exp.results, name)
+    reports += write_charts(rows, exp.results, name) + write_pareto_charts(rows, exp.results, name)
     return rows, reports

@@ -50,6 +50,18 @@ def read_metrics(run_dir) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def median_step_seconds(run_dir) -> float | None:
+    """Median wall time of one training step from the run's stats.jsonl: the step cost without
+    the compiles that dominate the total of short runs (None without stats)."""
+    path = Path(run_dir) / STATS_NAME
+    if not path.is_file():
+        return None
+    elapsed = [json.loads(line)["elapsed_s"] for line in path.read_text().splitlines() if line.strip()]
+    steps = np.diff(elapsed)
+    steps = steps[steps > 0]  # a resume restarts the clock at the checkpoint's time
+    return float(np.median(steps)) if steps.size else None
+
+
 def write_metrics(out_dir, metrics: dict, per_view: list[dict]) -> Path:
     """metrics.json and per_view.json (atomically, NaN refused); returns metrics.json's path."""
     from ghsplat_jax.io_utils import write_json
