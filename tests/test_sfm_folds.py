@@ -158,3 +158,20 @@ def test_options_are_checked():
         dis.DisambiguateOptions(window=0).validate()
     with pytest.raises(ValueError, match="min_agreement"):
         dis.DisambiguateOptions(min_agreement=2.0).validate()
+
+
+def _posed_at(centres: dict[int, np.ndarray]) -> ModelPoses:
+    w2c = {k: np.hstack([np.eye(3), -np.asarray(c, float)[:, None]]) for k, c in centres.items()}
+    return ModelPoses(w2c, {k: None for k in centres}, {k: 500.0 for k in centres})
+
+
+def test_a_frame_that_leaves_and_comes_back_is_a_spike_but_a_single_jump_is_not():
+    line = {k: np.array([0.3 * k, 0.0, 1.2]) for k in range(20)}
+    spiked = dict(line)
+    spiked[9] = np.array([-4.0, 3.0, 1.2])  # one look-alike plant matched: placed across the row
+    del spiked[10], spiked[11]  # unregistered frames widen the gap after it
+    assert folds.spikes(_posed_at(spiked), folds.FoldOptions()) == [9]
+    assert folds.spikes(_posed_at(line), folds.FoldOptions()) == []
+    # a robot crossing to the other aisle jumps once and stays: not a mis-registration
+    turned = {k: c + (np.array([0.0, 5.0, 0.0]) if k >= 10 else 0) for k, c in line.items()}
+    assert folds.spikes(_posed_at(turned), folds.FoldOptions()) == []

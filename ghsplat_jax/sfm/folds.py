@@ -87,6 +87,21 @@ def long_range_contradictions(graph: MatchGraph, poses: ModelPoses, options: Fol
             "fraction_contradicted": round(bad / len(scores), 4) if scores else 0.0}
 
 
+def spikes(poses: ModelPoses, options: FoldOptions) -> list[int]:
+    """Registered frames placed far from both registered capture neighbours (more than
+    jump_factor median steps per frame of gap) while those neighbours sit within that of each
+    other: a walking camera cannot leave and come back, so such a pose is a mis-registration
+    (a look-alike plant matched)."""
+    posed = sorted(poses.world_to_cam)
+    if len(posed) < 4:
+        return []
+    c = {k: -poses.world_to_cam[k][:3, :3].T @ poses.world_to_cam[k][:3, 3] for k in posed}
+    median = float(np.median([np.linalg.norm(c[a] - c[b]) for a, b in zip(posed, posed[1:])]))
+    far = lambda a, b: np.linalg.norm(c[a] - c[b]) > options.jump_factor * median * abs(b - a)  # noqa: E731
+    return [k for a, k, b in zip(posed, posed[1:], posed[2:]) if median > 0 and far(a, k) and far(k, b)
+            and not far(a, b)]
+
+
 def order_jumps(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
     """Consecutive registered frames placed more than jump_factor median steps apart."""
     posed = sorted(poses.world_to_cam)

@@ -399,6 +399,17 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     return second
 
 
+def drop_spikes(reconstruction, graph: MatchGraph, options: SfmOptions) -> list[str]:
+    """Deregister the frames folds.spikes calls mis-registered (in place); their names."""
+    fold_options = dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
+    bad = {graph.names[k] for k in folds.spikes(model_poses(reconstruction, graph), fold_options)}
+    for image_id in list(reconstruction.reg_image_ids()):
+        image = reconstruction.images[image_id]
+        if image.name in bad:
+            reconstruction.deregister_frame(image.frame_id)
+    return sorted(bad)
+
+
 # ---------------------------------------------------------------------------- the run
 
 
@@ -452,6 +463,8 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         result = reconstruct(database, root, names, options, distorted, timings, bar)
         models, best = result.models, result.best
         report["disambiguation"] = result.disambiguation
+        if best is not None and options.fold_check and options.capture_order == "name":
+            report["dropped_spikes"] = drop_spikes(best, read_match_graph(database, names), options)
         report.update(_registration(models, best, names))
         model_dir = distorted / "sparse" / "0"
         if best is None:  # leave no earlier run's model beside a report that says "failed"
