@@ -58,7 +58,9 @@ def run_facts(row: dict) -> dict:
 
 
 def series_name(row: dict) -> str:
-    return row.get("strategy") or row.get("variant") or ""
+    """The chart line of a run: its strategy, with contribution pruning named when it was on."""
+    name = row.get("strategy") or row.get("variant") or ""
+    return f"{name} + contrib prune" if row.get("contrib_prune") else name
 
 
 def _ratio(a, b):
@@ -88,11 +90,14 @@ def _f(v, fmt: str) -> str:
 
 
 def summary_markdown(rows: list[dict], title: str) -> str:
-    lines = [f"# {title}: compactness\n",
+    lines = [f"# Compactness: {title}\n",
              "PSNR on the test split (train split where a scene has none), median render time over views, "
              "step time = median seconds per step over the second half of training, state = size of the "
              "training state (checkpoint.npz: every pool slot's parameters, Adam moments and statistics). "
-             "Ratios are against the same scene's `default` run; the same seed for every run.\n"]
+             "Ratios are against the same scene's `default` run; the same seed for every run. "
+             "`train s` includes XLA compilation, which JAX's persistent cache shares between runs whose "
+             "programs are identical (the first run of a scene pays most of it): compare `step s`. Peak RSS "
+             "(compactness.json) is a process peak: it only compares runs trained in separate processes.\n"]
     goal = [r for r in rows if r.get("count_fraction") is not None and abs(r["count_fraction"] - GOAL_FRACTION) < 1e-9]
     lines.append(f"## Goal check: at {GOAL_FRACTION:.0%} of the default's count, within {GOAL_DB} dB\n")
     if goal:

@@ -312,7 +312,8 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
         if row is not None:
-            rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction))
+            contrib = bool(r.config.contrib_prune_every or r.config.contrib_prune_final)
+            rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction, contrib_prune=contrib))
     if not rows:
         return rows, []
     name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
