@@ -99,7 +99,7 @@ def test_config_overrides_save_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="exp.toml.*stepz"):
         load_config(p)
     with pytest.raises(ConfigError, match="strategy"):
-        apply_overrides(cfg, {"strategy": "mcmc"})
+        apply_overrides(cfg, {"strategy": "nonesuch"})
     with pytest.raises(ConfigError, match="integer"):
         apply_overrides(cfg, {"steps": "many"})
     short = TrainConfig(steps=3000, scale_schedule=True).resolved()

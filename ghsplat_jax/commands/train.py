@@ -18,8 +18,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="TOML (or JSON) file of TrainConfig overrides")
     p.add_argument("--steps", type=int, help="optimisation steps (default 30000)")
     p.add_argument("--downscale", type=float, help="image downscale factor")
-    p.add_argument("--strategy", choices=("default", "budget"), help="densification strategy")
-    p.add_argument("--max-surfels", type=int, help="cap on the surfel count for --strategy budget")
+    p.add_argument("--strategy", help="densification strategy: default, budget or mcmc (train/strategy.py); "
+                                      "an unknown name is a config error that lists them")
+    p.add_argument("--max-surfels", type=int, help="cap on the surfel count for --strategy budget or mcmc")
     p.add_argument("--seed", type=int)
     p.add_argument("--white", action="store_true", help="composite and render on a white background")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

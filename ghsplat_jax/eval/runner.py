@@ -14,6 +14,12 @@ Experiment file layout (see experiments/*.toml):
     [[variants]]                   # optional; one "default" variant when absent
     name = "budget"
     train = { strategy = "budget", max_surfels = 20000 }
+    [[variants]]                   # a capped strategy at a fraction of another variant's final count:
+    name = "mcmc_20"               # max_surfels = round(0.2 x the scene's `default` run's num_gaussians),
+    count_fraction = 0.2           # resolved when it runs (that run goes first; an error if it has not
+    count_of = "default"           # finished); count_of defaults to "default"
+    train = { strategy = "mcmc" }
+    reports = ["compactness"]      # extra reports (eval/compactness.py) beside results / table1 / charts
     [presets.quick]                # `--preset quick`; the file itself is the "full" preset
     train = { steps = 300 }        # merged over [train]; `scenes` / `variants` here replace the lists
 """
@@ -41,6 +47,8 @@ class PlannedRun:
     variant: str
     config: TrainConfig
     out_dir: Path
+    count_fraction: float | None = None  # max_surfels from this fraction of the count_of run's final count
+    count_of: str = "default"
 
     @property
     def finished(self) -> bool:
@@ -58,6 +66,7 @@ class Experiment:
     preset: str = "full"
     kind: str = "train"  # "train" (scenes x variants) or a study that commands/run.py dispatches
     spec: dict = dataclasses.field(default_factory=dict)  # the file with its preset applied (for studies)
+    reports: tuple[str, ...] = ()  # extra reports of REPORTS to write
 
 
 def _table(value, what: str, source) -> dict:
@@ -70,13 +79,15 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
     name = _table(entry, f"{kind}[{i}]", source).get("name")
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(f"{source}: {kind}[{i}] needs a 'name' of letters, digits, '_', '-' or '.', got {name!r}")
-    unknown = set(entry) - ({"name", "data", "train", "segment"} if kind == "scenes" else {"name", "train"})
+    unknown = set(entry) - ({"name", "data", "train", "segment"} if kind == "scenes" else
+                            {"name", "train", "count_fraction", "count_of"})
     if unknown:
         raise ConfigError(f"{source}: unknown keys {sorted(unknown)} in {kind[:-1]} {name!r}")
     return name
 
 
-_KEYS = {"name", "description", "output", "results", "kind", "prepare", "cases", "train", "scenes", "variants"}
+_KEYS = {"name", "description", "output", "results", "kind", "prepare", "cases", "train", "scenes", "variants",
+         "reports"}
 KINDS = ("train", "stability")
 
 
@@ -153,9 +164,58 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
             cfg = apply_overrides(cfg, _table(variant.get("train", {}), f"variant {vname!r} train", path), where)
             if overrides:
                 cfg = apply_overrides(cfg, overrides, "command line")
-            runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname))
+            fraction, of = _count_fraction(variant, vname, variants, cfg, path)
+            runs.append(PlannedRun(sname, vname, cfg, out_root / sname / vname, fraction, of))
     report_root = Path(results or output or spec.get("results") or out_root)
-    return Experiment(name, spec.get("description", ""), out_root, runs, path, report_root, preset, kind, spec)
+    reports = spec.get("reports", [])
+    if not isinstance(reports, list) or any(r not in REPORTS for r in reports):
+        raise ConfigError(f"{path}: 'reports' must be a list of {sorted(REPORTS)}, got {reports!r}")
+    return Experiment(name, spec.get("description", ""), out_root, runs, path, report_root, preset, kind, spec,
+                      tuple(reports))
+
+
+REPORTS = ("compactness",)
+
+
+def _count_fraction(variant: dict, vname: str, variants: list, cfg: TrainConfig, path) -> tuple[float | None, str]:
+    """The variant's validated (count_fraction, count_of)."""
+    from ghsplat_jax.train.strategy import strategy_class
+
+    of = variant.get("count_of", "default")
+    if "count_fraction" not in variant:
+        if "count_of" in variant:
+            raise ConfigError(f"{path}: variant {vname!r} has count_of but no count_fraction")
+        return None, of
+    f = variant["count_fraction"]
+    if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f:
+        raise ConfigError(f"{path}: variant {vname!r}: count_fraction must be a number > 0, got {f!r}")
+    if not strategy_class(cfg.strategy).caps_count:
+        raise ConfigError(f"{path}: variant {vname!r}: count_fraction needs a strategy that caps the count "
+                          f"(max_surfels), not {cfg.strategy!r}")
+    ref = [v for v in variants if isinstance(v, dict) and v.get("name") == of]
+    if not ref or of == vname:
+        raise ConfigError(f"{path}: variant {vname!r}: count_of names {of!r}, which is not another variant of the file")
+    if "count_fraction" in ref[0]:
+        raise ConfigError(f"{path}: variant {vname!r}: count_of {of!r} has a count_fraction itself")
+    return float(f), str(of)
+
+
+def resolve_count(run: PlannedRun, runs: list[PlannedRun]) -> PlannedRun:
+    """`run` with max_surfels = round(count_fraction x the final count of the same scene's
+    count_of run); ConfigError when that run has not finished."""
+    from ghsplat_jax.train.run_dir import METRICS_NAME, read_metrics
+
+    if run.count_fraction is None:
+        return run
+    ref = next((r for r in runs if r.scene == run.scene and r.variant == run.count_of), None)
+    metrics = read_metrics(ref.out_dir) if ref is not None else None
+    if not metrics or not metrics.get("num_gaussians"):
+        where = ref.out_dir / METRICS_NAME if ref is not None else f"{run.scene}/{run.count_of}"
+        raise ConfigError(f"{run.scene}/{run.variant}: count_fraction = {run.count_fraction} of variant "
+                          f"{run.count_of!r}, which has not finished ({where} missing); run "
+                          f"{run.scene}/{run.count_of} first")
+    cap = max(1, int(round(run.count_fraction * int(metrics["num_gaussians"]))))
+    return dataclasses.replace(run, config=run.config.replace(max_surfels=cap))
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
@@ -178,15 +238,18 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
 
 
-def run_one(run: PlannedRun) -> str | None:
+def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None) -> str | None:
     """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
     when interrupted. Returns None, or the error text (one broken scene must not stop the set).
-    The executors (local, Ray) both call this, so a run behaves the same wherever it runs."""
+    The executors (local, Ray) both call this, so a run behaves the same wherever it runs.
+    `all_runs`: the experiment's runs, where a count_fraction run finds its reference."""
     if run.finished:
         log.info("%s/%s: finished, skipped", run.scene, run.variant)
         return None
-    log.info("%s/%s: training into %s", run.scene, run.variant, run.out_dir)
     try:
+        run = resolve_count(run, all_runs or [])
+        log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir, run.config.strategy,
+                 f", max_surfels {run.config.max_surfels}" if run.count_fraction else "")
         train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
     except KeyboardInterrupt:
         raise
@@ -198,10 +261,10 @@ def run_one(run: PlannedRun) -> str | None:
     return None
 
 
-def _run_locally(runs: list[PlannedRun], stop_on_error: bool) -> list[tuple[str, str]]:
+def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None) -> list[tuple[str, str]]:
     failed = []
     for r in runs:
-        msg = run_one(r)
+        msg = run_one(r, all_runs)
         if msg is not None:
             failed.append((f"{r.scene}/{r.variant}", msg))
             if stop_on_error:
@@ -222,14 +285,22 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     for r in selected:
         if r.finished:
             log.info("%s/%s: finished, skipped", r.scene, r.variant)
-    if executor == "local":
-        failed = _run_locally(todo, stop_on_error)
-    elif executor == "ray":
-        from ghsplat_jax.eval.ray_executor import run_on_ray
-
-        failed = run_on_ray(todo, run_one, stop_on_error=stop_on_error, **(ray_options or {})) if todo else []
-    else:
+    if executor not in ("local", "ray"):
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
+    # Two waves: runs with a count_fraction need their reference's final count.
+    failed = []
+    for wave in ([r for r in todo if r.count_fraction is None], [r for r in todo if r.count_fraction is not None]):
+        if not wave or (failed and stop_on_error):
+            continue
+        if executor == "local":
+            failed += _run_locally(wave, stop_on_error, exp.runs)
+        else:
+            import functools
+
+            from ghsplat_jax.eval.ray_executor import run_on_ray
+
+            failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs), stop_on_error=stop_on_error,
+                                 **(ray_options or {}))
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
 
@@ -239,11 +310,20 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     from ghsplat_jax.eval.charts import write_charts, write_pareto_charts
     from ghsplat_jax.eval.report import run_row, write_results, write_table1
 
-    rows = [row for r in exp.runs if (row := run_row(r.out_dir, r.scene, r.variant, exp.name)) is not None]
+    rows = []
+    for r in exp.runs:
+        row = run_row(r.out_dir, r.scene, r.variant, exp.name)
+        if row is not None:
+            contrib = bool(r.config.contrib_prune_every or r.config.contrib_prune_final)
+            rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction, contrib_prune=contrib))
     if not rows:
         return rows, []
     name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
     title = f"{name}: {exp.description}" if exp.description else name
     reports = write_results(rows, exp.results, title) + write_table1(rows, exp.results, f"Table 1 ({name})")
     reports += write_charts(rows, exp.results, name) + write_pareto_charts(rows, exp.results, name)
+    if "compactness" in exp.reports:
+        from ghsplat_jax.eval.compactness import write_compactness
+
+        reports += write_compactness(rows, exp.results, name)
     return rows, reports

@@ -21,19 +21,25 @@ def _key(path) -> str:
     return jax.tree_util.keystr(path)
 
 
-def save_checkpoint(path: str | os.PathLike, state, extra: dict) -> Path:
-    """Write `state` (any pytree) and a JSON-able `extra` dict; refuses non-finite live values."""
+def save_checkpoint(path: str | os.PathLike, state, extra: dict, aux=None) -> Path:
+    """Write `state` (any pytree), a JSON-able `extra` dict and an optional second pytree `aux`
+    (a strategy's state; read back with `load_aux`); refuses non-finite live values."""
     path = Path(path)
     leaves = jax.tree_util.tree_flatten_with_path(state)[0]
     arrays = {}
     for i, (p, leaf) in enumerate(leaves):
         arrays[f"leaf_{i:04d}"] = np.asarray(leaf)
+    aux_leaves = jax.tree_util.tree_flatten_with_path(aux)[0] if aux is not None else []
+    for i, (p, leaf) in enumerate(aux_leaves):
+        arrays[f"aux_{i:04d}"] = np.asarray(leaf)
     active = np.asarray(state.active)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
         values = np.asarray(getattr(state.params, name))[active]
         if not np.all(np.isfinite(values)):
             raise CheckpointError(f"{path}: refusing to write non-finite {name} to a checkpoint")
     meta = dict(extra, keys=[_key(p) for p, _ in leaves])
+    if aux is not None:
+        meta["aux_keys"] = [_key(p) for p, _ in aux_leaves]
     arrays["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     with atomic_write(path, "wb") as fh:
         np.savez(fh, **arrays)
@@ -63,3 +69,20 @@ def load_checkpoint(path: str | os.PathLike, template) -> tuple[object, dict]:
         if np.ndim(t) != leaf.ndim:
             raise CheckpointError(f"{path}: leaf {_key(p)} has rank {leaf.ndim}, expected {np.ndim(t)}")
     return jax.tree_util.tree_unflatten(treedef, leaves), meta
+
+
+def load_aux(path: str | os.PathLike, template):
+    """The `aux` pytree saved with a checkpoint, with the structure of `template`; None when the
+    file has none (a checkpoint written before strategies kept state)."""
+    path = Path(path)
+    meta = read_meta(path)
+    if "aux_keys" not in meta:
+        return None
+    paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+    keys = [_key(p) for p, _ in paths]
+    if keys != meta["aux_keys"]:
+        raise CheckpointError(f"{path}: the saved strategy state {meta['aux_keys']} does not match this "
+                              f"strategy's {keys} (was the run started with another strategy?)")
+    with np.load(path) as z:
+        leaves = [jax.numpy.asarray(z[f"aux_{i:04d}"]) for i in range(len(keys))]
+    return jax.tree_util.tree_unflatten(treedef, leaves)

@@ -15,7 +15,8 @@ from pathlib import Path
 from ghsplat_jax.config_values import coerce
 from ghsplat_jax.raster.config import RasterConfig
 
-STRATEGIES = ("default", "budget")
+# The densification strategies (train/strategy.py registers them; a registered class adds its name).
+STRATEGIES = ("default", "budget", "mcmc")
 # Flat names that earlier configs (and experiment files) used for fields of the raster section.
 RASTER_ALIASES = {"near": "near", "far": "far", "background": "background", "tile_size": "tile_size",
                   "chunk_size": "chunk_size", "batch_chunks": "batch_chunks", "raster_backward": "backward",
@@ -72,7 +73,8 @@ class TrainConfig:
     random_init_scale: float = 0.5      # random points: multiple of the nearest-neighbour scale (see random_init.py)
 
     # --- densification (2DGS defaults) ---------------------------------------------------
-    strategy: str = "default"           # "default" (2DGS adaptive density) or "budget" (capped count)
+    strategy: str = "default"           # "default" (2DGS), "budget" (capped count), "mcmc" (3DGS-MCMC, fixed cap);
+    #                                     see train/strategy.py (the classes, their state and hooks)
     densify_from: int = 500             # first densification step
     densify_until: int = 15_000         # no densification (or pruning) after this step
     densify_every: int = 100            # densify and prune every this many steps
@@ -95,6 +97,23 @@ class TrainConfig:
     budget_schedule: str = "linear"     # "linear" growth from the initial count to the cap by densify_until,
     #                                     or "immediate" (the cap is available from densify_from)
 
+    # --- MCMC strategy (3DGS-MCMC; refinement every densify_every steps in [densify_from, densify_until)) ---
+    mcmc_min_opacity: float = 0.005     # "dead" below this opacity: relocated onto live surfels sampled by opacity
+    mcmc_grow_rate: float = 0.05        # each round grows the live count by this fraction, up to max_surfels
+    mcmc_noise_lr: float = 5e5          # position noise = this x the means learning rate x in-plane covariance
+    lambda_opacity_reg: float = -1.0    # L1 on opacities (mean over live surfels); -1: the strategy's default
+    #                                     (mcmc 0.01, others 0)
+    lambda_scale_reg: float = -1.0      # L1 on scales (mean of exp(log_scales)); -1: the strategy's default (same)
+
+    # --- contribution pruning (any strategy) -------------------------------------------------
+    # Remove surfels whose blending weight summed over the training views (alpha x transmittance,
+    # in pixels) is under contrib_prune_threshold: every contrib_prune_every steps (0: never; scaled
+    # by scale_schedule) and/or once after the last step (contrib_prune_final).
+    contrib_prune_every: int = 0
+    contrib_prune_final: bool = False
+    contrib_prune_threshold: float = 1.0  # pixels' worth of weight over all the views counted
+    contrib_prune_views: int = 0        # training views to count (0: all; else a seeded subset)
+
     # --- fixed-capacity pool ------------------------------------------------------------
     initial_capacity: int = 0           # surfel slots at the start (0: 2x the initial count)
     capacity_headroom: float = 0.05     # grow the pool when fewer free slots than this fraction remain
@@ -116,8 +135,20 @@ class TrainConfig:
     save_test_renders: bool = True      # write rgb/depth/normal images of the test views
 
     def __post_init__(self):
-        if self.strategy not in STRATEGIES:
-            raise ConfigError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
+        from ghsplat_jax.train.strategy import strategy_class
+
+        try:
+            strategy_class(self.strategy).validate(self)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        if self.max_surfels < 0:
+            raise ConfigError(f"max_surfels must be >= 0 (0: 5x the initial count), got {self.max_surfels}")
+        for name in ("lambda_opacity_reg", "lambda_scale_reg"):
+            if getattr(self, name) < 0 and getattr(self, name) != -1:
+                raise ConfigError(f"{name} must be >= 0, or -1 for the strategy's default, got {getattr(self, name)}")
+        if self.contrib_prune_every < 0 or self.contrib_prune_views < 0 or self.contrib_prune_threshold < 0:
+            raise ConfigError("contrib_prune_every, contrib_prune_views and contrib_prune_threshold must be >= 0, got "
+                              f"{self.contrib_prune_every}, {self.contrib_prune_views}, {self.contrib_prune_threshold}")
         if self.budget_schedule not in ("linear", "immediate"):
             raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
@@ -145,7 +176,8 @@ class TrainConfig:
             self, scale_schedule=False, sh_increase_every=s(self.sh_increase_every),
             dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
-            opacity_reset_every=s(self.opacity_reset_every, 100))
+            opacity_reset_every=s(self.opacity_reset_every, 100),
+            contrib_prune_every=s(self.contrib_prune_every) if self.contrib_prune_every else 0)
 
     def replace(self, **changes) -> "TrainConfig":
         return apply_overrides(self, changes)

@@ -27,11 +27,16 @@ class LossWeights:
     depth_ratio: float
     sh_degree: int
     sh_increase_every: int
+    opacity_reg: float = 0.0  # L1 regularisers (3DGS-MCMC); the strategy's default where the config says -1
+    scale_reg: float = 0.0
 
     @classmethod
     def from_config(cls, c) -> "LossWeights":
+        from ghsplat_jax.train.strategy import loss_weight
+
         return cls(c.lambda_dssim, c.lambda_dist, c.dist_from, c.lambda_normal, c.normal_from,
-                   c.depth_ratio, c.sh_degree, c.sh_increase_every)
+                   c.depth_ratio, c.sh_degree, c.sh_increase_every, loss_weight(c, "lambda_opacity_reg"),
+                   loss_weight(c, "lambda_scale_reg"))
 
 
 def sh_band_mask(step: jax.Array, w: LossWeights, num_rest: int) -> jax.Array:
@@ -60,6 +65,11 @@ def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, ra
         dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)
         normal_loss = losses.normal_consistency(out.normal, dn, out.alpha)
         loss = loss + jnp.where(step >= w.normal_from, w.lambda_normal, 0.0) * normal_loss
+    if w.opacity_reg > 0 or w.scale_reg > 0:
+        live = active.astype(jnp.float32)
+        n = jnp.maximum(jnp.sum(live), 1.0)
+        loss = loss + w.opacity_reg * jnp.sum(jax.nn.sigmoid(params.opacity_logits) * live) / n
+        loss = loss + w.scale_reg * jnp.sum(jnp.exp(params.log_scales) * live[:, None]) / n
     aux = dict(l1=l1, ssim=ssim, psnr=losses.psnr(out.rgb, image), distortion=dist, normal=normal_loss,
                visible=out.visible, radii=out.radii, num_pairs=out.stats.num_pairs,
                overflow=out.stats.overflow)

@@ -22,12 +22,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.train import checkpoint as ckpt
-from ghsplat_jax.train import densify, optim
+from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
 from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, load_run_checkpoint,
                                        load_training_data, peak_rss_mb)
-from ghsplat_jax.train.state import TrainState, grow, initial_surfels, new_state, pad_params, random_init_box
+from ghsplat_jax.train.state import TrainState, initial_surfels, new_state, pad_params, random_init_box
 from ghsplat_jax.train.step import make_train_step
+from ghsplat_jax.train.strategy import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
 
 log = logging.getLogger("ghsplat.train")
 
@@ -44,6 +45,7 @@ class TrainResult:
     rollbacks: int
     out_dir: Path
     initial_count: int
+    strategy_state: dict = dataclasses.field(default_factory=dict)  # the strategy's own state at the end
 
     @property
     def surfels(self):
@@ -96,22 +98,6 @@ def _jsonable(d: dict) -> dict:
     return out
 
 
-def _white(c: TrainConfig) -> bool:
-    return all(b == 1.0 for b in c.raster.background)
-
-
-def last_reset_before(c: TrainConfig, it: int) -> int | None:
-    """The iteration of the last opacity reset before `it` (None when there was none)."""
-    resets = []
-    if c.opacity_reset_every > 0:
-        k = (min(it - 1, c.densify_until - 1)) // c.opacity_reset_every
-        if k >= 1:
-            resets.append(k * c.opacity_reset_every)
-        if _white(c) and c.densify_from < it and c.densify_from < c.densify_until:
-            resets.append(c.densify_from)
-    return max(resets) if resets else None
-
-
 class _Session:
     """Mutable loop state of one run (host side)."""
 
@@ -124,11 +110,9 @@ class _Session:
             raise ValueError(f"dataset {config.data}: scene extent {self.extent} is not a positive number")
         self.optimizers, self.step_fn = make_train_step(config, render_fn)
         self.means_lr = optim.means_schedule(config, self.extent)
-        self.dparams = densify.DensifyParams.from_config(config, self.extent)
-        self.densify_fn = densify.densify_jit
-        self.reset_fn = densify.reset_opacity_jit
-        self.count_fn = densify.count_candidates_jit
+        self.strategy = make_strategy(config)  # the trainer calls its hooks, whatever it is
         self.render_fn = render_fn
+        self.changed = False  # the last step's hooks may have changed the count
         self.rollbacks = 0
         self.consecutive = 0  # non-finite steps in a row
         self.prior_seconds = 0.0
@@ -147,15 +131,9 @@ class _Session:
         rng = np.random.default_rng(c.seed)
         box = random_init_box([v.camera for v in self.ds.train], self.ds.scene_center, 0.5 * self.extent)
         init = initial_surfels(self.ds.points, self.ds.point_colors, *box, self.extent, c, rng)
-        if c.strategy == "budget":
-            self.max_surfels = c.max_surfels or 5 * init.num
-            if init.num > self.max_surfels:
-                init = init.take(np.sort(rng.choice(init.num, self.max_surfels, replace=False)))
-            cap = self.max_surfels
-        else:
-            self.max_surfels = 0
-            cap = max(c.initial_capacity, 2 * init.num, 1024)
+        init, cap = self.strategy.initial_pool(init, rng)
         self.initial_count = init.num
+        self.sstate = self.strategy.init_state(init.num)
         params, active = pad_params(init, cap)
         self.state = new_state(params, active, self.optimizers)
         self.pair_capacity = c.raster.pair_capacity or self._measure_pairs()
@@ -179,16 +157,37 @@ class _Session:
         self.prior_seconds = float(meta.get("train_seconds", 0.0))
         self.prior_peak_rss_mb = float(meta.get("peak_rss_mb", 0.0))
         self.initial_count = int(meta["initial_count"])
-        self.max_surfels = int(meta.get("max_surfels", 0))
+        template = self.strategy.init_state(self.initial_count)
+        saved = ckpt.load_aux(path, template)
+        if saved is None:  # a checkpoint from before strategies kept state: theirs is a function of the config
+            log.info("%s: no strategy state saved; rebuilt from the config", path)
+        self.sstate = template if saved is None else saved
         log.info("resumed from %s at step %d", path, int(self.state.step))
 
     def save(self, seconds: float):
         s = self.state
         extra = dict(step=int(s.step), capacity=s.capacity, sh_degree=s.params.sh_degree,
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
-                     initial_count=self.initial_count, max_surfels=self.max_surfels,
-                     peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb), config=self.config.to_dict())
-        ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra)
+                     initial_count=self.initial_count, peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb),
+                     config=self.config.to_dict())
+        extra.update(self.strategy.meta(self.sstate))
+        ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra, aux=self.sstate)
+
+    def context(self) -> StrategyContext:
+        return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
+                               pair_capacity=self.pair_capacity, means_lr=self.means_lr, raster=self.config.raster,
+                               render_fn=self.render_fn)
+
+    def _hook(self, name: str, *args) -> dict:
+        """Call a strategy hook on the current state; keep what it returns."""
+        ctx = self.context()
+        self.state, self.sstate, info = getattr(self.strategy, name)(ctx, self.state, self.sstate, *args)
+        self.pair_capacity = max(self.pair_capacity, ctx.pair_capacity)
+        self.changed = bool(info)
+        return info
+
+    def finish(self) -> dict:
+        return self._hook("at_end")
 
     # -- one iteration ------------------------------------------------------------------
     def step(self, step: int) -> dict:
@@ -208,6 +207,7 @@ class _Session:
             log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
                      self.pair_capacity)
         m = {k: np.asarray(val).item() for k, val in m.items()}
+        self.changed = False
         if not m["finite"]:
             self.rollbacks += 1
             self.consecutive += 1
@@ -222,49 +222,8 @@ class _Session:
             return m
         self.consecutive = 0
         self.state = new
-        m.update(self.densify(step + 1))
+        m.update(self._hook("after_step", step + 1))
         return m
-
-    def densify(self, it: int) -> dict:
-        """2DGS schedule, counted in completed iterations `it` (the reference's 1-based counter)."""
-        c = self.config
-        info = {}
-        if it >= c.densify_until:
-            return info
-        white_bg = _white(c)
-        if it > c.densify_from and it % c.densify_every == 0:
-            n_active = int(jnp.sum(self.state.active))
-            if c.strategy == "budget":
-                target = densify.budget_target(c, it, self.initial_count, self.max_surfels)
-                max_new = max(target - n_active, 0)
-            else:
-                self._ensure_capacity(n_active)
-                max_new = self.state.capacity
-            key = jax.random.fold_in(jax.random.PRNGKey(c.seed), it)
-            prune_big = it > c.opacity_reset_every
-            # Opacities just reset to 0.01 are below the prune threshold: give them time to recover.
-            last = last_reset_before(c, it)
-            prune_transparent = last is None or it - last >= c.reset_recovery_steps
-            self.state, counts = self.densify_fn(self.state, key, jnp.int32(max_new), jnp.bool_(prune_big),
-                                                 p=self.dparams, prune_transparent=jnp.bool_(prune_transparent))
-            info.update({k: int(v) for k, v in counts.items()})
-        if c.opacity_reset_every > 0 and (it % c.opacity_reset_every == 0 or (white_bg and it == c.densify_from)):
-            self.state = self.reset_fn(self.state, value=c.opacity_reset_value)
-            info["opacity_reset"] = True
-        return info
-
-    def _ensure_capacity(self, n_active: int):
-        """Grow the pool (a recompile per bucket) when the candidates would not fit."""
-        need = n_active + int(self.count_fn(self.state, grad_threshold=self.dparams.grad_threshold))
-        cap = self.state.capacity
-        limit = cap * (1.0 - self.config.capacity_headroom)
-        if need <= limit:
-            return
-        new_cap = cap
-        while new_cap * (1.0 - self.config.capacity_headroom) < need:
-            new_cap *= 2
-        log.info("surfel pool %d -> %d slots", cap, new_cap)
-        self.state = grow(self.state, new_cap)
 
 
 def _truncate_stats(path: Path, last_step: int) -> None:
@@ -330,7 +289,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
             while step < stop:
                 m = session.step(step)
                 step += 1
-                if "pruned" in m or "opacity_reset" in m:
+                if session.changed:
                     num = int(jnp.sum(session.state.active))
                 now = time.perf_counter()
                 rate = (step - last_step) / max(now - last_t, 1e-9)
@@ -354,9 +313,14 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
         finally:
             stats.close()
             bar.close()
+    if step >= config.steps:
+        end_info = session.finish()  # e.g. a final contribution-pruning pass, before the PLY and checkpoint
+        if end_info:
+            log.info("end of training: %s", end_info)
     total = seconds()
     session.save(total)
-    result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count)
+    result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count,
+                         jax.device_get(session.sstate))
     if step >= config.steps:
         from ghsplat_jax.data.ply import save_ply
 

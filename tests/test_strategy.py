@@ -1,0 +1,233 @@
+"""Densification strategies as objects (train/strategy.py): invariants of each strategy, the
+contribution-pruning pass, the trainer calling hooks of any registered strategy, resume of a
+strategy's state, count_fraction variants of the experiment runner and the compactness report."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ghsplat_jax.train import optim, strategy as strat, trainer
+from ghsplat_jax.train.config import ConfigError, TrainConfig
+from ghsplat_jax.train.state import new_state, pad_params
+from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+from ghsplat_jax.train.trainer import train
+from raster_scenes import camera, random_scene
+
+CONFIG = TrainConfig(steps=20, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
+                     sh_increase_every=10, densify_from=2, densify_every=4, densify_until=18,
+                     opacity_reset_every=1000, lambda_normal=0.0, initial_capacity=512, init_random_points=120,
+                     progress=False, checkpoint_every=10).replace(pair_capacity=16384)
+
+
+def dataset():
+    return cached_synthetic_dataset(num_views=6, width=32, height=24, num_surfels=40, test_every=3, num_points=200)
+
+
+def small_state(n=48, cap=64, seed=0):
+    params, active = pad_params(random_scene(n, seed=seed, degree=1), cap)
+    return new_state(params, active, optim.make_optimizers(CONFIG))
+
+
+def test_relocation_values_match_the_binomial_sum_and_keep_a_single_surfel():
+    op = jnp.array([0.05, 0.3, 0.7, 0.95, 0.5])
+    ls = jnp.log(jnp.full((5, 2), 0.1))
+    for n in range(1, 7):
+        new_op, new_ls = strat.relocation_values(op, ls, jnp.full(5, n))
+        o2 = np.asarray(new_op, np.float64)
+        # 3DGS-MCMC's double sum with 1/(k+1) (the 2D area integral of the k+1-th power of a Gaussian)
+        denom = sum(math.comb(i - 1, k) * (-1) ** k * o2 ** (k + 1) / (k + 1) for i in range(1, n + 1) for k in range(i))
+        np.testing.assert_allclose(np.asarray(strat.relocation_integral(new_op, jnp.full(5, n))), denom, rtol=1e-4)
+        # N stacked copies cover the plane like the original: s'^2 I(o', N) = s^2 o
+        area = np.exp(2 * np.asarray(new_ls[:, 0], np.float64)) * denom
+        np.testing.assert_allclose(area, 0.01 * np.asarray(op), rtol=1e-4)
+        np.testing.assert_allclose(1 - (1 - o2) ** n, np.asarray(op), rtol=1e-4)
+        if n == 1:
+            np.testing.assert_allclose(np.asarray(new_op), np.asarray(op), rtol=1e-5)
+            np.testing.assert_allclose(np.asarray(new_ls), np.asarray(ls), atol=1e-5)
+
+
+def test_mcmc_round_relocates_only_dead_surfels_and_keeps_the_count_at_the_cap():
+    s = small_state(n=64, cap=64)
+    dead = np.zeros(64, bool)
+    dead[[3, 10, 11, 40]] = True
+    logits = np.where(dead, -8.0, np.asarray(s.params.opacity_logits))
+    s = dataclasses.replace(s, params=dataclasses.replace(s.params, opacity_logits=jnp.asarray(logits)))
+    new, counts = strat.mcmc_round_jit(s, jax.random.PRNGKey(0), jnp.int32(64), min_opacity=0.005, grow_rate=0.05)
+    assert int(counts["relocated"]) == 4 and int(counts["added"]) == 0
+    assert int(jnp.sum(new.active)) == 64  # fixed count at the cap
+    moved = np.any(np.asarray(new.params.means) != np.asarray(s.params.means), axis=1)
+    assert set(np.nonzero(moved)[0]) <= set(np.nonzero(dead)[0])  # only dead surfels move
+    assert moved[dead].all()
+    # Each relocated surfel sits on a live one, and no live surfel stays dead.
+    means = np.asarray(new.params.means)
+    for i in np.nonzero(dead)[0]:
+        assert np.any(np.all(means[~dead] == means[i], axis=1))
+    assert float(jnp.min(jax.nn.sigmoid(new.params.opacity_logits))) > 0.005
+    for leaf in jax.tree_util.tree_leaves(new.params):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+def test_mcmc_growth_fills_free_slots_up_to_the_cap_and_noise_moves_only_live_means():
+    s = small_state(n=40, cap=64)
+    new, counts = strat.mcmc_round_jit(s, jax.random.PRNGKey(1), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
+    assert int(counts["added"]) == 10 and int(jnp.sum(new.active)) == 50
+    new2, _ = strat.mcmc_round_jit(new, jax.random.PRNGKey(2), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
+    assert int(jnp.sum(new2.active)) == 50  # never past the cap
+    noisy = strat.mcmc_noise_jit(new2, jax.random.PRNGKey(3), jnp.float32(1e3))
+    moved = np.any(np.asarray(noisy.params.means) != np.asarray(new2.params.means), axis=1)
+    assert not moved[~np.asarray(new2.active)].any() and moved[np.asarray(new2.active)].any()
+
+
+def test_contribution_weights_sum_to_the_rendered_alpha_and_pruning_uses_the_threshold():
+    from ghsplat_jax.raster.config import RasterConfig
+    from ghsplat_jax.raster.render import render
+    from ghsplat_jax.train.state import render_params
+
+    s = small_state(n=48, cap=64)
+    cam = camera(32, 24)
+    K, w2c = jnp.asarray(cam.K, jnp.float32), jnp.asarray(cam.world_to_cam, jnp.float32)
+    ctx = strat.StrategyContext(extent=1.0, Ks=K[None], w2cs=w2c[None], width=32, height=24, pair_capacity=256,
+                                means_lr=lambda i: 0.0, raster=RasterConfig())
+    w = np.asarray(strat.accumulated_weights(ctx, s))
+    out = render(render_params(s.params, s.active, w2c), cam, RasterConfig())
+    # Sum over surfels of (alpha x transmittance) per pixel = the pixel's alpha.
+    np.testing.assert_allclose(w.sum(), float(jnp.sum(out.alpha)), rtol=1e-3)
+    assert np.all(w[~np.asarray(s.active)] == 0) and np.all(w >= -1e-5)
+    threshold = float(np.median(w[np.asarray(s.active)]))
+    new, n = strat.contribution_prune(s, jnp.asarray(w), jnp.float32(threshold))
+    expect = np.asarray(s.active) & (w < threshold)
+    assert int(n) == expect.sum() > 0
+    np.testing.assert_array_equal(np.asarray(new.active), np.asarray(s.active) & ~expect)
+
+
+def test_config_validation_names_the_setting():
+    with pytest.raises(ConfigError, match="strategy must be one of .*mcmc"):
+        TrainConfig(strategy="nonesuch")
+    with pytest.raises(ConfigError, match="mcmc_min_opacity"):
+        TrainConfig(strategy="mcmc", mcmc_min_opacity=0.0)
+    with pytest.raises(ConfigError, match="lambda_scale_reg"):
+        TrainConfig(lambda_scale_reg=-0.5)
+    with pytest.raises(ConfigError, match="contrib_prune"):
+        TrainConfig(contrib_prune_threshold=-1)
+    assert strat.loss_weight(TrainConfig(strategy="mcmc"), "lambda_opacity_reg") == 0.01
+    assert strat.loss_weight(TrainConfig(), "lambda_opacity_reg") == 0.0
+    assert TrainConfig(steps=3000, contrib_prune_every=3000, scale_schedule=True).resolved().contrib_prune_every == 300
+
+
+@strat.register("test_counting")
+@dataclasses.dataclass(frozen=True)
+class CountingStrategy(strat.Strategy):
+    """A strategy only a test knows: counts its hook calls in its state."""
+
+    def init_state(self, initial_count):
+        return dict(super().init_state(initial_count), calls=jnp.zeros((), jnp.int32), ended=jnp.zeros((), jnp.int32))
+
+    def refine(self, ctx, state, sstate, it):
+        return state, dict(sstate, calls=sstate["calls"] + 1), {}
+
+    def at_end(self, ctx, state, sstate):
+        state, sstate, info = super().at_end(ctx, state, sstate)
+        return state, dict(sstate, ended=sstate["ended"] + 1), info
+
+
+def test_trainer_has_no_strategy_branches_and_runs_a_registered_strategy(tmp_path):
+    src = inspect.getsource(trainer)
+    assert "strategy ==" not in src and '"budget"' not in src and '"mcmc"' not in src
+    result = train(CONFIG.replace(strategy="test_counting", steps=6), tmp_path / "t", dataset=dataset())
+    assert int(result.strategy_state["calls"]) == 6 and int(result.strategy_state["ended"]) == 1
+    assert result.num_surfels == result.initial_count  # the base strategy never densifies
+
+
+def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
+    for name, extra in (("mcmc", dict(mcmc_grow_rate=0.5)), ("budget", dict(densify_grad_threshold=1e-8))):
+        out = tmp_path / name
+        res = train(CONFIG.replace(strategy=name, max_surfels=150, **extra), out, dataset=dataset())
+        counts = [json.loads(x)["num_surfels"] for x in (out / "stats.jsonl").read_text().splitlines()]
+        assert max(counts) <= 150 and res.state.capacity == 150
+        for leaf in jax.tree_util.tree_leaves(res.state.params):
+            assert np.all(np.isfinite(np.asarray(leaf)[np.asarray(res.state.active)]))
+        if name == "mcmc":
+            assert counts[-1] == 150 and int(res.strategy_state["added"]) == 150 - res.initial_count
+
+
+def test_resume_restores_the_strategy_state(tmp_path):
+    cfg = CONFIG.replace(strategy="mcmc", max_surfels=250, mcmc_grow_rate=0.2, contrib_prune_every=8,
+                         contrib_prune_threshold=0.05)
+    full = train(cfg, tmp_path / "full", dataset=dataset())
+    train(cfg, tmp_path / "part", dataset=dataset(), until=10)
+    done = train(cfg, tmp_path / "part", dataset=dataset(), resume=True)
+    for k, v in full.strategy_state.items():
+        assert int(done.strategy_state[k]) == int(v), k
+    assert int(full.strategy_state["relocated"]) + int(full.strategy_state["added"]) > 0
+    np.testing.assert_array_equal(np.asarray(full.state.active), np.asarray(done.state.active))
+    np.testing.assert_allclose(np.asarray(full.state.params.means), np.asarray(done.state.params.means), atol=1e-5)
+
+
+EXPERIMENT = """
+name = "frac"
+output = "{out}"
+[train]
+steps = 10
+[[scenes]]
+name = "s"
+data = "nowhere"
+[[variants]]
+name = "default"
+[[variants]]
+name = "mcmc_20"
+count_fraction = 0.2
+train = {{ strategy = "mcmc" }}
+"""
+
+
+def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_path):
+    from ghsplat_jax.eval.runner import load_experiment, resolve_count, run_one
+
+    f = tmp_path / "frac.toml"
+    f.write_text(EXPERIMENT.format(out=tmp_path / "runs"))
+    exp = load_experiment(f)
+    ref, run = exp.runs
+    assert run.count_fraction == 0.2 and run.count_of == "default" and ref.count_fraction is None
+    with pytest.raises(ConfigError, match="s/mcmc_20: count_fraction = 0.2 of variant 'default', which has not finished"):
+        resolve_count(run, exp.runs)
+    assert "has not finished" in run_one(run, exp.runs)  # the runner reports it as that run's failure
+    ref.out_dir.mkdir(parents=True)
+    (ref.out_dir / "metrics.json").write_text(json.dumps({"num_gaussians": 12345}))
+    assert resolve_count(run, exp.runs).config.max_surfels == 2469
+    f.write_text(EXPERIMENT.format(out=tmp_path / "runs").replace('strategy = "mcmc"', 'strategy = "default"'))
+    with pytest.raises(ConfigError, match="caps the count"):
+        load_experiment(f)
+    f.write_text(EXPERIMENT.format(out=tmp_path / "runs").replace("count_fraction = 0.2", 'count_fraction = 0.2\n'
+                                                                  'count_of = "other"'))
+    with pytest.raises(ConfigError, match="count_of names 'other'"):
+        load_experiment(f)
+
+
+def test_compactness_report_states_the_goal_check(tmp_path):
+    from ghsplat_jax.eval.compactness import write_compactness
+
+    rows = []
+    for variant, strategy, frac, n, psnr in (("default", "default", None, 1000, 25.0), ("mcmc_20", "mcmc", 0.2, 200, 24.9),
+                                             ("budget_20", "budget", 0.2, 200, 24.5)):
+        d = tmp_path / variant
+        d.mkdir()
+        (d / "metrics.json").write_text(json.dumps({"num_gaussians": n, "peak_rss_mb": 100.0}))
+        (d / "stats.jsonl").write_text("".join(json.dumps({"step": i, "elapsed_s": i * n / 1e4}) + "\n"
+                                               for i in range(1, 11)))
+        rows.append(dict(scene="s", variant=variant, strategy=strategy, count_fraction=frac, num_gaussians=n, psnr=psnr,
+                         train_seconds=n / 100, render_seconds_per_view=n / 1e5, steps=10, run_dir=str(d)))
+    made = write_compactness(rows, tmp_path / "rep", "t")
+    names = {p.name for p in made}
+    assert {"compactness.md", "compactness_psnr_vs_count.png", "compactness_psnr_vs_train_time.png",
+            "compactness_psnr_vs_render_time.png"} <= names
+    md = (tmp_path / "rep" / "compactness.md").read_text()
+    assert "| s | mcmc | 200 (0.20) | 24.90 | -0.10 | yes | 0.020 (0.20)" in md
+    assert "1 of 2 runs at 20% meet the goal" in md
