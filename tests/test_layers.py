@@ -22,7 +22,7 @@ LAYERS = {
     "train": 4,
     "eval": 5,
     "scene": 6, "sfm": 6, "synth": 6, "sim": 6,
-    "commands": 7, "cli": 7, "__init__": 7,
+    "commands": 7, "cli": 7, "__init__": 7, "studies": 7,
 }
 # Genuine exceptions, each with its reason: (importing part, imported part) -> reason.
 EXCEPTIONS: dict[tuple[str, str], str] = {}

@@ -1,0 +1,7 @@
+"""Studies that combine the layers below (SfM, the synthetic generator, training, rendering) into
+one measured table: `ghsplat run experiments/NAME.toml` dispatches an experiment's `kind` here.
+
+    stability.py   where methods fail, how the tool detects it and what it tells the user
+    sfm_rows.py    SfM on procedural rows against ground truth (shared with
+                   benchmarks/sfm_disambiguation.py)
+"""
