@@ -1,5 +1,6 @@
 """`ghsplat run experiments/NAME.toml`: train a set of runs (scenes x variants), skip finished
-ones, and collect their metrics into one table, a Table-1 report and charts."""
+ones, and collect their metrics into one table, a Table-1 report and charts. A file with
+`kind = "stability"` runs the stability study instead (ghsplat_jax/studies/stability.py)."""
 
 from __future__ import annotations
 
