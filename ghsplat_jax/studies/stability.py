@@ -109,7 +109,8 @@ def _sfm_row(case: dict, r: dict, source: str) -> dict:
     if message is None:
         message = f"(exit 0) {r['registered']} of {r['views']} images registered"
     error = (f"{r['registered']}/{r['views']} registered; centre RMSE "
-             + (f"{rmse:.2f}% of extent" if rmse is not None else "n/a (no model)"))
+             + (f"{rmse:.2f}% of extent" if rmse is not None
+                else "n/a (no model)" if not r["registered"] else "n/a (fewer than 3 cameras to align)"))
     return _row(case, f"--disambiguate {r['method']}", ok, error, detection, message, source,
                 status=r["status"], exit_code=code, registered=r["registered"], views=r["views"],
                 centre_rmse_pct=rmse, rotation_max_deg=r.get("rotation_max_deg"),
