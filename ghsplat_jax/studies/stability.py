@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import itertools
 import json
 import logging
 import math
@@ -620,7 +621,7 @@ def reading(rows: list[dict]) -> list[str]:
                    "caught by the NaN guard step by step.")
     noisy = sorted((r for r in tr if r.get("pose_noise") or r.get("baseline_psnr") is None),
                    key=lambda r: r["pose_noise"])
-    if len(noisy) >= 3 and any(b["test_psnr"] > a["test_psnr"] for a, b in zip(noisy, noisy[1:])):
+    if len(noisy) >= 3 and any(b["test_psnr"] > a["test_psnr"] for a, b in itertools.pairwise(noisy)):
         out.append("- The test PSNR is not monotonic in the pose noise ("
                    + ", ".join(f"{100 * r['pose_noise']:g}%: {r['test_psnr']:.2f} dB" for r in noisy)
                    + "): at this image size, step count and number of test views the differences are within "
