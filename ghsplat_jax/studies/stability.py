@@ -624,8 +624,8 @@ def reading(rows: list[dict]) -> list[str]:
     if len(noisy) >= 3 and any(b["test_psnr"] > a["test_psnr"] for a, b in itertools.pairwise(noisy)):
         out.append("- The test PSNR is not monotonic in the pose noise ("
                    + ", ".join(f"{100 * r['pose_noise']:g}%: {r['test_psnr']:.2f} dB" for r in noisy)
-                   + "): at this image size, step count and number of test views the differences are within "
-                   "the run-to-run spread, so a pass or fail near the 1 dB line is not a robust ranking "
+                   + "): at this image size, step count and number of test views one run's noise is at least "
+                   "as large as these differences, so a pass or fail near the 1 dB line is not a robust ranking "
                    "(a sweep over seeds would be needed to resolve it).")
     dv = [r for r in rows if r["family"] == "divergence"]
     if dv:
