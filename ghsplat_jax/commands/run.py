@@ -1,5 +1,6 @@
 """`ghsplat run experiments/NAME.toml`: train a set of runs (scenes x variants), skip finished
-ones, and collect their metrics into one table, a Table-1 report and charts."""
+ones, and collect their metrics into one table, a Table-1 report and charts. A file with
+`kind = "stability"` runs the stability study instead (ghsplat_jax/studies/stability.py)."""
 
 from __future__ import annotations
 
@@ -46,6 +47,8 @@ def main(args) -> int:
     except ConfigError as exc:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2
+    if exp.kind == "stability":
+        return _run_stability(exp, args)
     if args.list:
         for r in exp.runs:
             state = "finished" if r.finished else ("interrupted" if has_checkpoint(r.out_dir) else "todo")
@@ -73,4 +76,30 @@ def main(args) -> int:
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
     print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))
+    return 1 if result["failed"] else 0
+
+
+def _run_stability(exp, args) -> int:
+    """kind = "stability": the cases of experiments/stability.toml (ghsplat_jax/studies/stability.py)."""
+    from ghsplat_jax.studies.stability import StudyError, check_cases, run_study
+
+    try:
+        cases = check_cases(exp.spec.get("cases"))
+    except StudyError as exc:
+        print(f"ghsplat run: {exp.source}: {exc}", file=sys.stderr)
+        return 2
+    if args.list:
+        for c in cases:
+            print(f"{c['family']}/{c['name']}")
+        return 0
+    if args.steps is not None:
+        exp.spec.setdefault("train", {})["steps"] = args.steps
+    try:
+        result = run_study(exp, set(args.only) or None)
+    except StudyError as exc:
+        print(f"ghsplat run: {exp.source}: {exc}", file=sys.stderr)
+        return 2
+    for name, msg in result["failed"]:
+        print(f"ghsplat run: case {name} could not run: {msg}", file=sys.stderr)
+    print(f"{len(result['rows'])} rows; reports: " + ", ".join(str(p) for p in result["reports"]))
     return 1 if result["failed"] else 0

@@ -185,14 +185,21 @@ def main(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     print(summary_text(report))
     print(f"Report: {Path(args.out) / 'sfm_report.json'}")
-    if report["status"] == "ok":
-        return 0
-    if report["status"] == "folded":
-        reasons = "; ".join(report["fold_diagnostics"]["reasons"])
-        print(f"ghsplat sfm: the model looks folded ({reasons}); it is in {args.out} for inspection "
-              "only: do not train on it (--no-fold-check to accept it)", file=sys.stderr)
-        return EXIT_FOLDED
-    needed = options.min_registered_fraction
-    print(f"ghsplat sfm: only {report.get('num_registered', 0)} of {report['num_images']} images "
-          f"registered (below --min-registered-fraction {needed})", file=sys.stderr)
-    return EXIT_TOO_FEW_REGISTERED
+    code, message = verdict(report["status"], report.get("fold_diagnostics", {}).get("reasons", []),
+                            report.get("num_registered", 0), report["num_images"], options.min_registered_fraction,
+                            args.out)
+    if message:
+        print(message, file=sys.stderr)
+    return code
+
+
+def verdict(status: str, fold_reasons: list[str], registered: int, num_images: int, needed: float,
+            out) -> tuple[int, str | None]:
+    """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status."""
+    if status == "ok":
+        return 0, None
+    if status == "folded":
+        return EXIT_FOLDED, (f"ghsplat sfm: the model looks folded ({'; '.join(fold_reasons)}); it is in {out} for "
+                             "inspection only: do not train on it (--no-fold-check to accept it)")
+    return EXIT_TOO_FEW_REGISTERED, (f"ghsplat sfm: only {registered} of {num_images} images registered "
+                                     f"(below --min-registered-fraction {needed})")

@@ -35,6 +35,8 @@ class TrainConfig:
     test_every: int = 8                 # every n-th image is a test view unless the dataset has a split
     max_views: int = 0                  # cap on the number of images read (0: all)
     seed: int = 0                       # view order, initialisation and split noise
+    pose_noise: float = 0.0             # robustness studies: move each training camera by this fraction of
+                                        # the scene extent (seeded by `seed`; test views keep true poses)
 
     # --- schedule -------------------------------------------------------------------------
     steps: int = 30_000                 # optimisation steps, one view per step (2DGS: 30k)
@@ -157,6 +159,8 @@ class TrainConfig:
             raise ConfigError(f"sh_degree must be 0-3, got {self.sh_degree}")
         if self.downscale <= 0:
             raise ConfigError(f"downscale must be positive, got {self.downscale}")
+        if not self.pose_noise >= 0:
+            raise ConfigError(f"pose_noise must be >= 0 (a fraction of the scene extent), got {self.pose_noise}")
         if not self.random_init_scale > 0:
             raise ConfigError(f"random_init_scale must be positive, got {self.random_init_scale}")
         if not isinstance(self.raster, RasterConfig):

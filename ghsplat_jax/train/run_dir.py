@@ -95,8 +95,14 @@ def load_training_data(config):
 
     if not config.data:
         raise ValueError("no dataset given: set --data (or `data` in the config)")
-    return load_dataset(resolve_data_path(config.data), downscale=config.downscale, background=config.raster.background,
-                        split="auto", test_every=config.test_every, max_views=config.max_views or None)
+    dataset = load_dataset(resolve_data_path(config.data), downscale=config.downscale,
+                           background=config.raster.background, split="auto", test_every=config.test_every,
+                           max_views=config.max_views or None)
+    if config.pose_noise:
+        from ghsplat_jax.data.perturb import perturb_poses
+
+        dataset = perturb_poses(dataset, config.pose_noise, config.seed)
+    return dataset
 
 
 def load_run_checkpoint(path, optimizers: dict):
