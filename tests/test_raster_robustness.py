@@ -108,6 +108,25 @@ def test_eager_render_grows_capacity_and_recompiles_only_per_bucket():
     assert _rasterize_jit._cache_size() == compiled + 1
 
 
+def test_one_capacity_for_many_views_renders_them_all_with_one_compile():
+    from ghsplat_jax.raster.render import _rasterize_jit, capacity_for_views
+
+    s = random_scene(200, scale=(0.1, 0.9), seed=4)
+    cams = [camera(96, 72, eye=(x, -3.5 + abs(x), 1.0)) for x in (-1.5, -0.5, 0.0, 0.7, 1.6)]
+    alone = [gs.render(s, c) for c in cams]
+    assert len({int(o.stats.capacity) for o in alone}) > 1  # sized view by view: several buckets
+    capacity = capacity_for_views(s, cams)
+    assert capacity >= max(int(o.stats.num_pairs) for o in alone)
+    cfg = gs.RasterConfig(pair_capacity=capacity)
+    compiled = _rasterize_jit._cache_size()
+    for c, o in zip(cams, alone):
+        out = gs.render(s, c, cfg)
+        assert int(out.stats.overflow) == 0 and int(out.stats.capacity) == capacity
+        np.testing.assert_allclose(np.asarray(out.rgb), np.asarray(o.rgb), atol=1e-6)
+    assert _rasterize_jit._cache_size() == compiled + 1
+    assert capacity_for_views(s, []) is None
+
+
 def test_jit_and_vmap_over_cameras():
     s = random_scene(100)
     cams = [camera(eye=(x, -3.5, 1.0)) for x in (-0.5, 0.0, 0.5)]

@@ -68,15 +68,17 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     import jax
     from tqdm.auto import tqdm
 
-    from ghsplat_jax.raster.render import render
+    from ghsplat_jax.raster.render import capacity_for_views, render
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_renders = config.save_test_renders if save_renders is None else save_renders
     progress = config.progress if progress is None else progress
-    rcfg = dataclasses.replace(config.raster, pair_capacity=None)  # eager renders: exact pair counts, nothing dropped
     surfels = jax.tree_util.tree_map(jax.numpy.asarray, surfels)
     splits = {"train": _even_subset(dataset.train, config.eval_max_train_views), "test": list(dataset.test)}
+    # Eager renders from exact pair counts (nothing dropped), all at one capacity: one compile.
+    capacity = capacity_for_views(surfels, [v.camera for views in splits.values() for v in views], config.raster)
+    rcfg = dataclasses.replace(config.raster, pair_capacity=capacity)
     rows, times = [], []
     warm = False
     for split, views in splits.items():

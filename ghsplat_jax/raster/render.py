@@ -180,6 +180,18 @@ def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
     return out
 
 
+def capacity_for_views(s: Surfels, cameras, cfg: RasterConfig | None = None) -> int | None:
+    """One pair capacity that fits every camera's exact pair count (None without cameras or
+    surfels): eager renders of many views with it compile once, where sizing each view alone
+    compiles again whenever a view needs a larger capacity bucket."""
+    cfg = RasterConfig() if cfg is None else cfg
+    s = _as_surfels(s)
+    if s.means.shape[0] == 0:
+        return None
+    counts = [int(count_pairs(s, cam, _binning_cfg(cfg))[0]) for cam in cameras]
+    return capacity_bucket(max(counts)) if counts else None
+
+
 def _binning_cfg(cfg: RasterConfig) -> RasterConfig:
     # Only the fields that change binning matter, so one compiled counter serves all variants.
     return RasterConfig(near=cfg.near, far=cfg.far, tile_size=cfg.tile_size, lowpass_filter=cfg.lowpass_filter,
