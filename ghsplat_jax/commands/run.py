@@ -72,7 +72,7 @@ def main(args) -> int:
         return 2
     result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
                             executor=args.executor, ray_options=ray_options, exclude=set(unusable))
-    result["failed"] = [(scene, msg) for scene, msg in unusable.items()] + result["failed"]
+    result["failed"] = list(unusable.items()) + result["failed"]
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
     print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))

@@ -11,14 +11,13 @@ process's peak, so it only compares runs trained in separate processes.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from ghsplat_jax.io_utils import atomic_write, machine_info, save_figure, write_json
-from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, STATS_NAME, read_metrics
+from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, median_step_seconds, read_metrics
 
 GOAL_FRACTION = 0.2
 GOAL_DB = 0.2
@@ -29,22 +28,6 @@ X_AXES = (  # file stem, row key, axis label
 )
 
 
-def median_step_seconds(run_dir) -> float | None:
-    """Median seconds per step over the second half of a run (stats.jsonl elapsed_s)."""
-    path = Path(run_dir) / STATS_NAME
-    if not path.is_file():
-        return None
-    t = []
-    for line in path.read_text().splitlines():
-        try:
-            t.append((int(json.loads(line)["step"]), float(json.loads(line)["elapsed_s"])))
-        except (ValueError, KeyError, TypeError):
-            continue
-    t = sorted(t)[len(t) // 2:]
-    d = [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(t, t[1:]) if b[0] > a[0]]
-    return float(np.median(d)) if d else None
-
-
 def run_facts(row: dict) -> dict:
     """The row with step_seconds, state_mib, capacity and peak_rss_mb of its run folder."""
     from ghsplat_jax.train.checkpoint import read_meta
@@ -53,7 +36,8 @@ def run_facts(row: dict) -> dict:
     ck = run / CHECKPOINT_NAME
     meta = read_meta(ck) if ck.is_file() else {}
     m = read_metrics(run) or {}
-    return dict(row, step_seconds=median_step_seconds(run), state_mib=ck.stat().st_size / 2**20 if ck.is_file() else None,
+    return dict(row, step_seconds=median_step_seconds(run, last_fraction=0.5),
+                state_mib=ck.stat().st_size / 2**20 if ck.is_file() else None,
                 capacity=meta.get("capacity"), peak_rss_mb=m.get("peak_rss_mb"))
 
 

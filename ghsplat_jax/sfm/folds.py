@@ -87,6 +87,11 @@ def long_range_contradictions(graph: MatchGraph, poses: ModelPoses, options: Fol
             "fraction_contradicted": round(bad / len(scores), 4) if scores else 0.0}
 
 
+def _centres(poses: ModelPoses) -> dict[int, np.ndarray]:
+    """Camera centre of every registered frame, by capture-order index."""
+    return {k: -w2c[:3, :3].T @ w2c[:3, 3] for k, w2c in poses.world_to_cam.items()}
+
+
 def spikes(poses: ModelPoses, options: FoldOptions) -> list[int]:
     """Registered frames placed far from both registered capture neighbours (more than
     jump_factor median steps per frame of gap) while those neighbours sit within that of each
@@ -95,7 +100,7 @@ def spikes(poses: ModelPoses, options: FoldOptions) -> list[int]:
     posed = sorted(poses.world_to_cam)
     if len(posed) < 4:
         return []
-    c = {k: -poses.world_to_cam[k][:3, :3].T @ poses.world_to_cam[k][:3, 3] for k in posed}
+    c = _centres(poses)
     median = float(np.median([np.linalg.norm(c[a] - c[b]) for a, b in zip(posed, posed[1:])]))
     far = lambda a, b: np.linalg.norm(c[a] - c[b]) > options.jump_factor * median * abs(b - a)  # noqa: E731
     return [k for a, k, b in zip(posed, posed[1:], posed[2:]) if median > 0 and far(a, k) and far(k, b)
@@ -105,7 +110,7 @@ def spikes(poses: ModelPoses, options: FoldOptions) -> list[int]:
 def order_jumps(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
     """Consecutive registered frames placed more than jump_factor median steps apart."""
     posed = sorted(poses.world_to_cam)
-    centres = {k: -poses.world_to_cam[k][:3, :3].T @ poses.world_to_cam[k][:3, 3] for k in posed}
+    centres = _centres(poses)
     steps = [(a, b, float(np.linalg.norm(centres[a] - centres[b]))) for a, b in zip(posed, posed[1:])]
     if len(steps) < 3:
         return {"median_step": None, "num_jumps": 0, "jumps": []}

@@ -344,6 +344,12 @@ class Mapped:
     best: object | None          # the largest, or None
     disambiguation: dict         # the pair filter's report
     diagnostics: dict | None     # folds.diagnose of `best`
+    graph: MatchGraph            # every verified pair (before any filter), by capture order
+
+
+def _fold_options(options: SfmOptions) -> folds.FoldOptions:
+    """The fold checks' options; a loop capture is cyclic for them as for the pair filter."""
+    return dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
 
 
 def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
@@ -357,11 +363,10 @@ def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, op
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     diagnostics = None
     if best is not None:
-        fold_options = dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
-        diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, fold_options,
+        diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, _fold_options(options),
                                      capture_order=options.capture_order == "name", num_models=len(models),
                                      chain=chain)
-    return Mapped(models, best, info, diagnostics)
+    return Mapped(models, best, info, diagnostics, graph)
 
 
 def reconstruct(database: Path, root: Path, names: list[str], options: SfmOptions, distorted: Path,
@@ -401,8 +406,7 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
 
 def drop_spikes(reconstruction, graph: MatchGraph, options: SfmOptions) -> list[str]:
     """Deregister the frames folds.spikes calls mis-registered (in place); their names."""
-    fold_options = dataclasses.replace(options.fold_options, cyclic=options.disambiguate_options.cyclic)
-    bad = {graph.names[k] for k in folds.spikes(model_poses(reconstruction, graph), fold_options)}
+    bad = {graph.names[k] for k in folds.spikes(model_poses(reconstruction, graph), _fold_options(options))}
     for image_id in list(reconstruction.reg_image_ids()):
         image = reconstruction.images[image_id]
         if image.name in bad:
@@ -464,7 +468,7 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         models, best = result.models, result.best
         report["disambiguation"] = result.disambiguation
         if best is not None and options.fold_check and options.capture_order == "name":
-            report["dropped_spikes"] = drop_spikes(best, read_match_graph(database, names), options)
+            report["dropped_spikes"] = drop_spikes(best, result.graph, options)
         report.update(_registration(models, best, names))
         model_dir = distorted / "sparse" / "0"
         if best is None:  # leave no earlier run's model beside a report that says "failed"

@@ -348,6 +348,16 @@ def run_divergence(case: dict, ctx) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- rendering
+def _random_surfels(rng: np.random.Generator, n: int, opacity: tuple[float, float], scale: tuple[float, float]):
+    """n random surfels in a 2.4 x 1.6 x 1.6 m box, opacities and scales uniform in the given ranges."""
+    from ghsplat_jax.core.surfels import make_surfels
+
+    means = rng.uniform(-1, 1, (n, 3)) * [1.2, 0.8, 0.8]
+    op = rng.uniform(*opacity, n)
+    return make_surfels(means, rng.normal(size=(n, 4)), np.log(rng.uniform(*scale, (n, 2))),
+                        np.log(op / (1 - op)), rng.normal(0, 0.6, (n, 3)), rng.normal(0, 0.2, (n, 3, 3)), 1)
+
+
 def raster_scene(kind: str, seed: int = 0):
     """(surfels, camera, indices the renderer must cull as invalid) for an opaque, a sparse or a
     degenerate scene; the camera looks along +y at the origin from 3.5 m."""
@@ -357,19 +367,9 @@ def raster_scene(kind: str, seed: int = 0):
     rng = np.random.default_rng(seed)
     cam = lambda w, h: Camera(intrinsics(w, h, 60.0), look_at([0.0, -3.5, 0.6], [0, 0, 0]), w, h)
     if kind == "opaque":  # many layers of nearly opaque surfels: transmittance reaches 1e-4 early
-        n = 400
-        means = rng.uniform(-1, 1, (n, 3)) * [1.2, 0.8, 0.8]
-        op = rng.uniform(0.9, 0.99, n)
-        s = make_surfels(means, rng.normal(size=(n, 4)), np.log(rng.uniform(0.15, 0.4, (n, 2))),
-                         np.log(op / (1 - op)), rng.normal(0, 0.6, (n, 3)), rng.normal(0, 0.2, (n, 3, 3)), 1)
-        return s, cam, []
+        return _random_surfels(rng, 400, (0.9, 0.99), (0.15, 0.4)), cam, []
     if kind == "sparse":  # a few faint surfels: most pixels never saturate
-        n = 24
-        means = rng.uniform(-1, 1, (n, 3)) * [1.2, 0.8, 0.8]
-        op = rng.uniform(0.03, 0.3, n)
-        s = make_surfels(means, rng.normal(size=(n, 4)), np.log(rng.uniform(0.05, 0.2, (n, 2))),
-                         np.log(op / (1 - op)), rng.normal(0, 0.6, (n, 3)), rng.normal(0, 0.2, (n, 3, 3)), 1)
-        return s, cam, []
+        return _random_surfels(rng, 24, (0.03, 0.3), (0.05, 0.2)), cam, []
     if kind != "degenerate":
         raise StudyError(f"raster scene must be opaque, sparse or degenerate, got {kind!r}")
     # ordinary surfels plus one of every awkward kind (as tests/test_raster_robustness.py's bad_scene)

@@ -64,8 +64,8 @@ def _camera(eye, target, K, width, height, jitter=np.zeros(3)) -> Camera:
     return Camera(K, w2c.astype(np.float32), width, height)
 
 
-def _walk_pieces(row, d: float, end: str | None, fraction: float) -> list[tuple]:
-    """The walk as pieces: ("aisle", x_from, x_to, side) along the aisle at y = row.y + side * d,
+def _walk_pieces(row, end: str | None, fraction: float) -> list[tuple]:
+    """The walk as pieces: ("aisle", x_from, x_to, side) along the aisle on that side of the row,
     or ("arc", x_centre, start_angle) half-circles round a row end. end=None: the closed loop
     round the whole row; "x0" / "x1": a U round that end covering `fraction` of the row."""
     x0, x1 = row.x0, row.x1
@@ -83,7 +83,7 @@ def _stadium(row, d: float, slowdown: float, n_views: int, end: str | None = Non
     """Positions (n,2), look-at points on the row axis (n,2) and walk phase (n,) of a walk round
     the row (or round one end of it, see _walk_pieces) at lateral distance d, sampled uniformly
     in time with slower walking on the end arcs."""
-    pieces = _walk_pieces(row, d, end, fraction)
+    pieces = _walk_pieces(row, end, fraction)
     lengths = np.array([abs(p[2] - p[1]) if p[0] == "aisle" else np.pi * d for p in pieces])
     durations = lengths / np.array([1.0 if p[0] == "aisle" else slowdown for p in pieces])
     tau = (np.arange(n_views) + 0.5) / n_views * durations.sum()

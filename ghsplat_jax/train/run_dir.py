@@ -50,16 +50,24 @@ def read_metrics(run_dir) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def median_step_seconds(run_dir) -> float | None:
-    """Median wall time of one training step from the run's stats.jsonl: the step cost without
-    the compiles that dominate the total of short runs (None without stats)."""
+def median_step_seconds(run_dir, last_fraction: float = 1.0) -> float | None:
+    """Median wall time of one training step from the run's stats.jsonl, over the last
+    `last_fraction` of the logged steps: the step cost without the compiles that dominate the
+    total of short runs (None without stats). A resume restarts the clock at the checkpoint's
+    time, so intervals that go backwards are left out."""
     path = Path(run_dir) / STATS_NAME
     if not path.is_file():
         return None
-    elapsed = [json.loads(line)["elapsed_s"] for line in path.read_text().splitlines() if line.strip()]
-    steps = np.diff(elapsed)
-    steps = steps[steps > 0]  # a resume restarts the clock at the checkpoint's time
-    return float(np.median(steps)) if steps.size else None
+    logged = []
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+            logged.append((int(record["step"]), float(record["elapsed_s"])))
+        except (ValueError, KeyError, TypeError):
+            continue
+    logged = logged[int(len(logged) * (1.0 - last_fraction)):]
+    per_step = [(t1 - t0) / (s1 - s0) for (s0, t0), (s1, t1) in zip(logged, logged[1:]) if s1 > s0 and t1 > t0]
+    return float(np.median(per_step)) if per_step else None
 
 
 def write_metrics(out_dir, metrics: dict, per_view: list[dict]) -> Path:
