@@ -33,6 +33,7 @@ from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
 from ghsplat_jax.sfm.matchgraph import (
     MatchGraph,
+    ModelPoses,
     keep_pairs,
     model_poses,
     read_match_graph,

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from typing import Callable, ClassVar
 
 import jax
