@@ -159,4 +159,4 @@ def test_quick_demo_writes_every_stage(tmp_path):
     assert loc["summary"]["frames"] == 6
     assert read_pixels(out / "views" / "greenhouse_rgb.png").shape == (320, 480, 3)
     report = (out / "report.md").read_text()
-    assert f"| surfels | {metrics['num_gaussians']} |" in report and "| training steps | 200 |" in report
+    assert f"| surfels | {metrics['num_gaussians']} |" in report and "| training steps | 200 of the 2DGS schedule (changed: none) |" in report

@@ -83,9 +83,19 @@ def test_points3d_lie_on_visible_surfaces_and_reproject(written):
             n_obs += abs(z - pc[2]) < 0.01 + 0.02 * pc[2]
     total = sum(len(im[5]) for im in images)
     assert total > 0 and n_obs / total > 0.9  # visible points agree with the depth map (edges aside)
-    # colours come from the textures: plants green, ground brownish
     rgb = np.array([p[1] for p in points.values()])
     assert rgb.std() > 5
+
+
+def test_point_colours_are_what_the_photos_show(written):
+    # As COLMAP colours its points: the mean of the observed pixels (lit, shaded), not the albedo.
+    s, cams, out = written
+    _, images, points = parse_colmap(out / "sparse" / "0")
+    photos = {iid: read_pixels(out / "images" / name).astype(float) for iid, _, _, _, name, _ in images}
+    observed = {iid: xy_id for iid, _, _, _, _, xy_id in images}
+    for pid, (_, rgb, track) in points.items():
+        seen = [photos[iid][int(observed[iid][k][1]), int(observed[iid][k][0]), :3] for iid, k in track]
+        np.testing.assert_allclose(rgb, np.mean(seen, axis=0), atol=0.51)
 
 
 def test_transforms_json_matches_colmap(written):

@@ -86,6 +86,13 @@ def test_means_learning_rate_schedule_endpoints():
     assert float(sched(60_000)) == pytest.approx(1.6e-6 * 4.0, rel=1e-4)
     lrs = optim.learning_rates(cfg)
     assert lrs["sh_rest"] == pytest.approx(2.5e-3 / 20) and lrs["opacity_logits"] == 0.05
+    # As 2DGS (position_lr_max_steps): a shorter run follows the 30k decay, not one squeezed into it.
+    short = optim.means_schedule(TrainConfig(steps=3_000), scene_extent=4.0)
+    assert float(short(3_000)) == pytest.approx(float(sched(3_000)), rel=1e-6)
+    own = optim.means_schedule(TrainConfig(steps=3_000, lr_means_steps=0), scene_extent=4.0)
+    assert float(own(3_000)) == pytest.approx(1.6e-6 * 4.0, rel=1e-4)
+    scaled = optim.means_schedule(TrainConfig(steps=3_000, scale_schedule=True).resolved(), scene_extent=4.0)
+    assert float(scaled(3_000)) == pytest.approx(1.6e-6 * 4.0, rel=1e-4)
 
 
 def test_config_overrides_save_and_errors(tmp_path):
@@ -278,3 +285,21 @@ def test_opacity_reset_recovery_window():
     assert last_reset_before(white, 600) == 500  # white backgrounds also reset at densify_from
     short = TrainConfig(steps=300, scale_schedule=True).resolved()
     assert 2 * short.opacity_reset_every >= short.densify_until  # at most one reset in a 300-step run
+
+
+def test_inputs_that_predict_a_poor_model_are_warned_about(caplog):
+    import dataclasses as dc
+    import logging
+
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+    from ghsplat_jax.train.trainer import FEW_TRAIN_VIEWS, warn_about_inputs
+
+    ds = cached_synthetic_dataset(num_views=16, test_every=4)
+    cfg = TrainConfig(data="row")
+    assert len(ds.train) >= FEW_TRAIN_VIEWS and warn_about_inputs(cfg, ds) == []
+    with caplog.at_level(logging.WARNING, logger="ghsplat.train"):
+        few = warn_about_inputs(cfg, dc.replace(ds, train=ds.train[:5]))
+        no_points = warn_about_inputs(cfg, dc.replace(ds, points=np.full((500, 3), np.nan, np.float32)))
+    assert len(few) == 1 and "only 5 training views" in few[0]
+    assert len(no_points) == 1 and "0 SfM points" in no_points[0] and "random points" in no_points[0]
+    assert [r.getMessage() for r in caplog.records] == few + no_points

@@ -281,9 +281,14 @@ def run_train(case: dict, ctx) -> list[dict]:
         ok = finite and psnr >= base - PSNR_DROP_DB
         crit = f"{psnr - base:+.2f} dB vs baseline"
     error = f"test PSNR {psnr:.2f} dB ({crit}), L1 {med['test_l1']:.4f}; train PSNR {med['train_psnr']:.2f} dB"
-    if warnings:
+    guard = [w for w in warnings if "rolled back" in w]
+    inputs = [w for w in warnings if w not in guard]  # trainer.warn_about_inputs: random init, few views
+    if guard:
         detection = f"NaN guard: {rollbacks} step(s) rolled back, each logged as a warning"
-        message = warnings[0] + f" (and {len(warnings) - 1} more)" if len(warnings) > 1 else warnings[0]
+        message = guard[0] + f" (and {len(guard) - 1} more)" if len(guard) > 1 else guard[0]
+    elif inputs:
+        detection = "input check: warned when training starts (trainer.warn_about_inputs)"
+        message = "; ".join(inputs)
     elif ok:
         detection = "none needed"
         message = None
@@ -614,11 +619,13 @@ def reading(rows: list[dict]) -> list[str]:
                       else "listed above with its detection; the NOT DETECTED ones return exit 0 with a wrong model."))
     tr = [r for r in rows if r["family"] == "train" and r.get("test_psnr") is not None]
     if tr:
+        from ghsplat_jax.train.trainer import FEW_TRAIN_VIEWS
+
         parts = [f"{r['case']} {r['test_psnr']:.2f} dB" for r in tr]
-        out.append("- Training (median test PSNR): " + ", ".join(parts) + ". The tool has no check for pose "
-                   "noise, few views or a poor initialisation: training ends normally either way, so a failing "
-                   "row there is NOT DETECTED and only a held-out PSNR shows it; a corrupt (NaN) view is "
-                   "caught by the NaN guard step by step.")
+        out.append("- Training (median test PSNR): " + ", ".join(parts) + ". Random initialisation and fewer "
+                   f"than {FEW_TRAIN_VIEWS} training views draw a warning when training starts; the tool has no "
+                   "check for pose noise (training ends normally, and only a held-out PSNR shows it); a corrupt "
+                   "(NaN) view is caught by the NaN guard step by step.")
     noisy = sorted((r for r in tr if r.get("pose_noise") or r.get("baseline_psnr") is None),
                    key=lambda r: r["pose_noise"])
     if len(noisy) >= 3 and any(b["test_psnr"] > a["test_psnr"] for a, b in itertools.pairwise(noisy)):

@@ -6,7 +6,8 @@
       normals/00000.exr     float32 world-frame unit normals facing the camera (0: no hit)
       masks/00000.png       uint16 instance ids (0: background), see instances.json
       sparse/0/cameras.txt images.txt points3D.txt   COLMAP text model, exact PINHOLE cameras,
-                            points sampled on the visible mesh surface with their tracks
+                            points sampled on the visible mesh surface with their tracks,
+                            coloured as the photos show them (as COLMAP colours them)
       transforms.json       NeRF convention (camera-to-world, OpenGL axes), same cameras
       mesh.ply              the scene mesh with per-vertex colours
       mesh.glb              the scene mesh with its textures (per-leaf tints not included)
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.data.images import write_image
+from ghsplat_jax.data.images import read_pixels, write_image
 from ghsplat_jax.io_utils import atomic_write, write_json
 from ghsplat_jax.scene.tags import save_tags
 from ghsplat_jax.synth.config import config_to_toml
@@ -88,6 +89,26 @@ def observations(scene: Scene, camera, points: np.ndarray, point_faces: np.ndarr
     tri, t, _ = trace(scene, np.broadcast_to(centre, offset.shape).copy(), offset / dist[:, None])
     visible = (tri == point_faces[idx]) | ((tri >= 0) & (t >= dist - 1e-4 * (1 + dist)))
     return idx[visible], xy[idx[visible]]
+
+
+def observed_colours(image_files, tracks, fallback: np.ndarray) -> np.ndarray:
+    """(n, 3) uint8 colour of each point as its photos show it: the mean of the pixels its track
+    observes (what COLMAP stores, lit and shaded), not its albedo; `fallback` where unobserved."""
+    total = np.zeros(fallback.shape, np.float64)
+    count = np.zeros(len(fallback))
+    for path, (idx, xy) in zip(image_files, tracks):
+        rgb = read_pixels(path)[..., :3]
+        scale = 255.0 / np.iinfo(rgb.dtype).max if np.issubdtype(rgb.dtype, np.integer) else 255.0
+        h, w = rgb.shape[:2]
+        col = np.clip(np.floor(xy[:, 0]).astype(int), 0, w - 1)
+        row = np.clip(np.floor(xy[:, 1]).astype(int), 0, h - 1)
+        np.add.at(total, idx, rgb[row, col].astype(np.float64) * scale)
+        np.add.at(count, idx, 1)
+    seen = count > 0
+    mean = total[seen] / count[seen, None]
+    out = fallback.copy()
+    out[seen] = np.clip(mean + 0.5, 0, 255).astype(np.uint8)
+    return out
 
 
 def write_colmap_text(folder: Path, cameras, names, points, colours, tracks) -> None:
@@ -217,8 +238,9 @@ def write_dataset(scene: Scene, cameras, out_dir: str | os.PathLike, *, n_points
     remap = np.full(len(points), -1)
     remap[keep] = np.arange(len(keep))
     tracks = [(remap[idx], xy) for idx, xy in tracks]
+    colours = observed_colours([out / "images" / n for n in names], tracks, colours[keep])
     (out / "sparse" / "0").mkdir(parents=True, exist_ok=True)
-    write_colmap_text(out / "sparse" / "0", cameras, names, points[keep], colours[keep], tracks)
+    write_colmap_text(out / "sparse" / "0", cameras, names, points[keep], colours, tracks)
 
     times = None if fps is None else np.arange(len(cameras)) / fps
     write_json(out / "transforms.json", transforms_json(cameras, names, times, {

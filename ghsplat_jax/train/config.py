@@ -50,7 +50,10 @@ class TrainConfig:
 
     # --- Adam (optax), one learning rate per parameter group -----------------------------
     lr_means_init: float = 1.6e-4       # x scene extent at step 0
-    lr_means_final: float = 1.6e-6      # x scene extent at the last step (exponential decay)
+    lr_means_final: float = 1.6e-6      # x scene extent after lr_means_steps (exponential decay)
+    # Steps the means' rate takes to decay (2DGS position_lr_max_steps: 30000 however long the run is,
+    # so a short run keeps the rate the real schedule has at its steps); 0: the run's own length.
+    lr_means_steps: int = 30_000
     lr_sh_dc: float = 2.5e-3            # base colour
     lr_sh_rest: float = 2.5e-3 / 20     # higher SH bands
     lr_opacity: float = 0.05            # opacity logits
@@ -155,6 +158,8 @@ class TrainConfig:
             raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
             raise ConfigError(f"steps must be >= 0, got {self.steps}")
+        if self.lr_means_steps < 0:
+            raise ConfigError(f"lr_means_steps must be >= 0, got {self.lr_means_steps}")
         if not 0 <= self.sh_degree <= 3:
             raise ConfigError(f"sh_degree must be 0-3, got {self.sh_degree}")
         if self.downscale <= 0:
@@ -178,6 +183,7 @@ class TrainConfig:
 
         return dataclasses.replace(
             self, scale_schedule=False, sh_increase_every=s(self.sh_increase_every),
+            lr_means_steps=s(self.lr_means_steps) if self.lr_means_steps else 0,
             dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
             opacity_reset_every=s(self.opacity_reset_every, 100),

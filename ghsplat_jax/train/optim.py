@@ -13,10 +13,11 @@ GROUPS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
 
 def means_schedule(config, scene_extent: float = 1.0) -> optax.Schedule:
-    """lr_means_init x extent decaying exponentially to lr_means_final x extent at the last step."""
+    """lr_means_init x extent decaying exponentially to lr_means_final x extent at step
+    lr_means_steps (the run's last step where that is 0), constant after."""
     init = config.lr_means_init * scene_extent
     final = config.lr_means_final * scene_extent
-    steps = max(int(config.steps), 1)
+    steps = max(int(config.lr_means_steps or config.steps), 1)
     return optax.exponential_decay(init, transition_steps=steps, decay_rate=final / init, end_value=final)
 
 

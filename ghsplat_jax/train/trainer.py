@@ -98,6 +98,30 @@ def _jsonable(d: dict) -> dict:
     return out
 
 
+# Fewer training views than this draw a warning: in the stability study (benchmarks/results/
+# stability/) 10 views of a row stayed within 1 dB of all 30, 5 views lost 2.8 dB.
+FEW_TRAIN_VIEWS = 10
+
+
+def warn_about_inputs(config: TrainConfig, dataset) -> list[str]:
+    """Warn (and return the messages) where the inputs predict a poor model that training itself
+    cannot notice: random initialisation for want of SfM points, or too few training views."""
+    messages = []
+    points = 0 if dataset.points is None else int(np.sum(np.all(np.isfinite(dataset.points), axis=1)))
+    if points < config.init_min_points:
+        messages.append(
+            f"{config.data}: {points} SfM points (init_min_points is {config.init_min_points}), so the surfels start "
+            f"at {config.init_random_points} random points in the camera box; expect lower accuracy and slower "
+            f"steps than from SfM points (run `ghsplat sfm` and train on its model)")
+    if len(dataset.train) < FEW_TRAIN_VIEWS:
+        messages.append(
+            f"{config.data}: only {len(dataset.train)} training views (fewer than {FEW_TRAIN_VIEWS}); novel views "
+            f"will be poorly constrained and the model will fit its training views much better than new ones")
+    for m in messages:
+        log.warning("%s", m)
+    return messages
+
+
 class _Session:
     """Mutable loop state of one run (host side)."""
 
@@ -131,6 +155,7 @@ class _Session:
         rng = np.random.default_rng(c.seed)
         box = random_init_box([v.camera for v in self.ds.train], self.ds.scene_center, 0.5 * self.extent)
         init = initial_surfels(self.ds.points, self.ds.point_colors, *box, self.extent, c, rng)
+        warn_about_inputs(c, self.ds)
         init, cap = self.strategy.initial_pool(init, rng)
         self.initial_count = init.num
         self.sstate = self.strategy.init_state(init.num)
