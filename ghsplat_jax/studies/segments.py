@@ -155,7 +155,7 @@ def prepare_segments(exp) -> dict[str, str]:
         raise ConfigError(f"{exp.source}: [prepare] must be a table")
     capture, greenhouse, sfm_options = _options(prep, exp.source)
     world = None
-    rows, unusable = [], {}
+    rows, unusable, made = [], {}, False
     for seg in _segments(exp.spec, exp.source):
         report = _is_done(seg)
         if report is None:
@@ -168,11 +168,12 @@ def prepare_segments(exp) -> dict[str, str]:
                                       f"(the greenhouse has {len(world.rows)} rows)")
             log.info("%s: photographing row %d round end %s, then SfM", seg.scene, seg.row, seg.end)
             report = _make(seg, world, capture, sfm_options)
+            made = True
         rows.append(_row(seg, report))
         if report.get("status") != "ok":
             unusable[seg.scene] = (f"SfM status {report.get('status')!r} (see {seg.sfm_dir / 'sfm_report.json'}); "
                                    "not trained, since a folded or partial model gives a wrong asset")
-    if rows:
+    if rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the SfM runs' machine record
         _write_report(rows, exp.results, capture)
     return unusable
 
