@@ -52,21 +52,23 @@ def _session(config: TrainConfig, dataset, checkpoint: Path | None):
     return session
 
 
-def time_steps(configs: dict, dataset, checkpoint: Path | None, steps: int) -> dict:
-    """Median wall and CPU seconds per training step for each config, from the same checkpoint (or
-    step 0), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike."""
-    sessions = {name: _session(cfg, dataset, checkpoint) for name, cfg in configs.items()}
-    start = int(next(iter(sessions.values())).state.step)
+def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int) -> dict:
+    """Median wall and CPU seconds per training step for each config, from the same checkpoint
+    (or step 0; or {name: checkpoint}, one per config), the configs' steps interleaved
+    (A, B, A, B, ...) so drifting load hits them alike."""
+    checkpoints = checkpoint if isinstance(checkpoint, dict) else dict.fromkeys(configs, checkpoint)
+    sessions = {name: _session(cfg, dataset, checkpoints[name]) for name, cfg in configs.items()}
+    starts = {name: int(session.state.step) for name, session in sessions.items()}
     samples = {name: [] for name in sessions}
     for k in range(steps):
         for name, session in sessions.items():
             t0, c0 = time.perf_counter(), time.process_time()
-            m = session.step(start + k)
+            m = session.step(starts[name] + k)
             samples[name].append((time.perf_counter() - t0, time.process_time() - c0, m["num_pairs"]))
     rows = {}
     for name, session in sessions.items():
         wall, cpu, pairs = (np.array(v) for v in zip(*samples[name]))
-        rows[name] = dict(step=start, surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
+        rows[name] = dict(step=starts[name], surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
                           pair_capacity=session.pair_capacity, candidate_pairs=float(np.median(pairs)),
                           seconds_per_step=float(np.median(wall)), cpu_seconds_per_step=float(np.median(cpu)),
                           load_average=os.getloadavg()[0])

@@ -71,9 +71,10 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
 
 
 def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "step_seconds",
-                        quality: str = "psnr", reference: str = "default") -> list[Path]:
+                        quality: str = "psnr", reference: str = "default", stem: str = "pareto") -> list[Path]:
     """Per scene with two or more variants: quality against cost, the Pareto front drawn and the
-    `reference` variant (the chosen defaults) ringed; pareto.json says which variants are on it."""
+    `reference` variant (the chosen defaults) ringed, in STEM_SCENE.png; STEM.json says which
+    variants are on it."""
     from matplotlib.figure import Figure
 
     folder = Path(folder)
@@ -105,8 +106,8 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        made.append(save_figure(fig, folder / f"pareto_{scene}.png", dpi=120))
+        made.append(save_figure(fig, folder / f"{stem}_{scene}.png", dpi=120))
     if summary:
-        made.append(write_json(folder / "pareto.json", {"cost": cost, "quality": quality, "reference": reference,
+        made.append(write_json(folder / f"{stem}.json", {"cost": cost, "quality": quality, "reference": reference,
                                                         "scenes": summary}))
     return made
