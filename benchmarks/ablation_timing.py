@@ -49,9 +49,25 @@ def main(argv=None) -> int:
                                                    "split": args.split, "scenes": timing})
     write_pareto_charts(charted, args.results, cost="interleaved_step_seconds", stem="pareto_interleaved",
                         title="step time re-measured interleaved")
+    write_markdown(args.results / "step_timing.md", charted, args.steps)
     print(json.dumps({s: {v: round(t["seconds_per_step"], 3) for v, t in tt.items()} for s, tt in timing.items()},
                      indent=1))
     return 0
+
+
+def write_markdown(path: Path, rows: list[dict], steps: int) -> None:
+    from ghsplat_jax.eval.report import markdown_table
+    from ghsplat_jax.io_utils import atomic_write
+
+    table = [dict(r, logged=f"{r['step_seconds']:.3f}", wall=f"{r['interleaved_step_seconds']:.3f}",
+                  cpu=f"{r['interleaved_cpu_seconds']:.3f}") for r in rows]
+    with atomic_write(path, "w") as fh:
+        fh.write(f"# Step time re-measured interleaved ({steps} steps per variant, medians)\n\n"
+                 "Each variant's step from its own final checkpoint, one step of each in turn in one process "
+                 "(benchmarks/ablation_timing.py); `logged` is the median the run logged while it trained.\n\n"
+                 + markdown_table(table, ("scene", "variant", "psnr", "num_gaussians", "logged", "wall", "cpu"),
+                                  ("scene", "variant", "test PSNR (dB)", "surfels", "logged step s",
+                                   "interleaved step s", "interleaved CPU s")))
 
 
 if __name__ == "__main__":
