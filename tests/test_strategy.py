@@ -54,6 +54,16 @@ def test_relocation_values_match_the_binomial_sum_and_keep_a_single_surfel():
             np.testing.assert_allclose(np.asarray(new_ls), np.asarray(ls), atol=1e-5)
 
 
+def test_sources_are_drawn_in_proportion_to_opacity_and_never_from_zero_weight():
+    w = jnp.array([0.0, 1.0, 0.0, 3.0, 0.0, 0.0, 4.0, 0.0])
+    draws = np.concatenate([np.asarray(strat.sample_in_proportion(jax.random.PRNGKey(k), jnp.tile(w, 500)))
+                            for k in range(4)]) % 8
+    freq = np.bincount(draws, minlength=8) / len(draws)
+    np.testing.assert_allclose(freq, w / w.sum(), atol=0.01)  # 16k draws: sd about 0.004
+    assert set(np.flatnonzero(freq)) == {1, 3, 6}
+    assert np.all(np.asarray(strat.sample_in_proportion(jax.random.PRNGKey(0), jnp.zeros(5))) == 0)
+
+
 def test_mcmc_round_relocates_only_dead_surfels_and_keeps_the_count_at_the_cap():
     s = small_state(n=64, cap=64)
     dead = np.zeros(64, bool)
