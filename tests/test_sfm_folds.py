@@ -127,6 +127,29 @@ def test_rotation_chain_of_a_clean_walk_has_no_drift():
     assert chain["num_links"] == 5 and chain["max_drift_deg"] < 0.5
 
 
+def test_a_model_whose_rotations_drift_from_the_chained_ones_is_flagged():
+    pytest.importorskip("cv2")
+    graph, poses = _walk(n=6)
+    options = folds.FoldOptions()
+    clean = folds.diagnose(graph, graph, _model(poses), _Reconstruction(), options, capture_order=True,
+                           num_models=1)
+    assert not clean["fold_suspected"]
+
+    def turned(w2c, deg):  # the camera yawed about its own y axis, centre kept
+        a = np.radians(deg)
+        r = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ w2c[:, :3]
+        centre = -w2c[:, :3].T @ w2c[:, 3]
+        return np.column_stack([r, -r @ centre])
+
+    # the last frames placed turned by more than the bound: the chain of measured relative
+    # rotations (straight ahead) cannot reach them
+    bent = [p if k < 4 else turned(p, 40.0) for k, p in enumerate(poses)]
+    report = folds.diagnose(graph, graph, _model(bent), _Reconstruction(), options, capture_order=True,
+                            num_models=1)
+    assert report["rotation_chain"]["max_drift_deg"] == pytest.approx(40.0, abs=0.5)
+    assert report["fold_suspected"] and any("drift 40 degrees" in r for r in report["reasons"])
+
+
 def test_order_filter_keeps_verified_long_pairs_and_drops_aliased_ones():
     graph, poses = _walk()
     options = dis.DisambiguateOptions(window=1)

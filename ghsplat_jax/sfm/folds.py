@@ -8,7 +8,7 @@ a small reprojection error, so those numbers cannot catch it. What it cannot hid
 - jumps: consecutive frames placed much farther apart than the typical step (reported
   only: a robot turning at a row end or a paused camera jumps too);
 - relative rotations chained along the capture sequence that drift away from the model's
-  (and, for a closed walk, a loop that does not close);
+  by more than a generous bound (and, for a closed walk, a loop that does not close);
 - tracks observed from opposite sides (rays more than `opposite_deg` apart), which a
   surface point on a plant or the ground cannot be;
 - the chain: segments mapped from neighbour pairs alone (no look-alike pair between
@@ -48,6 +48,11 @@ class FoldOptions:
     # correct varied row had 29% such views (the chain breaks where neighbours overlap
     # little), folded identical rows 44-100%; calibrated on these few cases only.
     max_unverified: float = 0.4
+    # Fold when the chained relative rotations of consecutive frames drift farther than this from
+    # the model's. Correct models drifted at most 13.7 deg (36 recorded runs, 36-59 views) and 16.6
+    # (a 60-view greenhouse segment 4.9% off); silent folds of greenhouse segments that passed
+    # every other check drifted 63.8 and 92.8 (benchmarks/results/sfm_disambiguation/repeatability.md).
+    max_rotation_drift_deg: float = 30.0
     opposite_deg: float = 150.0      # observing rays farther apart than this: seen from both sides
     max_opposite: float = 0.02       # fold when more of the tracks are seen from both sides
 
@@ -241,11 +246,15 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
     if capture_order:
         neighbours = neighbour_contradictions(graph, poses, options)
         jumps = order_jumps(graph, poses, options)
-        report.update(neighbour_pairs=neighbours, order_jumps=jumps,
-                      rotation_chain=rotation_chain(graph, poses, options))
+        chained = rotation_chain(graph, poses, options)
+        report.update(neighbour_pairs=neighbours, order_jumps=jumps, rotation_chain=chained)
         if neighbours["num_contradicted"] > options.max_contradicted:
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
+        if (chained["max_drift_deg"] or 0.0) > options.max_rotation_drift_deg:
+            reasons.append(f"the relative rotations of consecutive frames, chained along the capture order, "
+                           f"drift {chained['max_drift_deg']:.0f} degrees from the model's (more than "
+                           f"{options.max_rotation_drift_deg:g})")
     if chain is not None:  # an empty chain (nothing mapped from neighbours alone) confirms no view
         consistency = chain_consistency(poses, chain, graph, options, mapped_graph)
         report["chain_consistency"] = consistency
