@@ -49,9 +49,9 @@ class FoldOptions:
     # little), folded identical rows 44-100%; calibrated on these few cases only.
     max_unverified: float = 0.4
     # Fold when the chained relative rotations of consecutive frames drift farther than this from
-    # the model's. Correct models drifted at most 13.7 deg (36 recorded runs, 36-59 views) and 16.6
-    # (a 60-view greenhouse segment 4.9% off); silent folds of greenhouse segments that passed
-    # every other check drifted 63.8 and 92.8 (benchmarks/results/sfm_disambiguation/repeatability.md).
+    # the model's. Models within 1% of the truth drifted at most 13.7 deg (36 recorded runs, 36-59
+    # views), a 60-view greenhouse segment 4.9% off 16.6; silent folds of greenhouse segments that
+    # passed every other check drifted 63.8 and 92.8 (sfm_disambiguation/repeatability*.md).
     max_rotation_drift_deg: float = 30.0
     opposite_deg: float = 150.0      # observing rays farther apart than this: seen from both sides
     max_opposite: float = 0.02       # fold when more of the tracks are seen from both sides
