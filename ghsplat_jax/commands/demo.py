@@ -30,6 +30,11 @@ SETTINGS = {  # quick: about two minutes; full: under ten on a 2-core CPU
 }
 
 
+def train_overrides(mode: dict) -> list[str]:
+    """The `ghsplat train` arguments (--set KEY=VALUE ...) of a SETTINGS mode's schedule changes."""
+    return [arg for key, value in mode["train"].items() for arg in ("--set", f"{key}={value}")]
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--quick", action="store_true", help="smallest settings (about two minutes)")
@@ -133,9 +138,8 @@ def main(args) -> int:
         if sfm_report and (out / "sfm" / "sparse" / "0").is_dir():
             sfm_report["accuracy"] = compare_model_dirs(out / "sfm" / "sparse" / "0", out / "row" / "sparse" / "0")
     shutil.rmtree(out / "run", ignore_errors=True)
-    overrides = [arg for key, value in mode["train"].items() for arg in ("--set", f"{key}={value}")]
     stages.run("train", "train", "--data", out / "row", "--out", out / "run", "--steps", mode["steps"],
-               "--downscale", mode["downscale"], "--no-progress", *overrides)
+               "--downscale", mode["downscale"], "--no-progress", *train_overrides(mode))
     metrics = run_dir.read_metrics(out / "run") or {}
 
     lo, hi = _row_box(out / "row" / "tags.json")

@@ -96,6 +96,11 @@ def random_init_box(cameras, fallback_center, fallback_half: float) -> tuple[np.
     return center, float(np.median(np.linalg.norm(o - center, axis=1)) * np.tan(max(half_fov)))
 
 
+def needs_random_init(num_points: int, config) -> bool:
+    """Too few (finite) dataset points to start from: training starts at random points instead."""
+    return num_points < config.init_min_points
+
+
 def initial_surfels(points, colors, box_center, box_half: float, extent: float, config, rng) -> Surfels:
     """Host Surfels from dataset points, or random points in the cube box_center +- box_half
     when there are too few (see `random_init_box`); `extent` scales `init_scale_max`."""
@@ -105,7 +110,7 @@ def initial_surfels(points, colors, box_center, box_half: float, extent: float, 
     finite = np.all(np.isfinite(points), axis=1)
     points = points[finite]
     colors = None if colors is None else np.asarray(colors, np.float32).reshape(-1, 3)[finite]
-    random = len(points) < config.init_min_points
+    random = needs_random_init(len(points), config)
     if random:
         n = config.init_random_points
         points = (np.asarray(box_center) + rng.uniform(-box_half, box_half, size=(n, 3))).astype(np.float32)

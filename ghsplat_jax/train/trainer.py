@@ -26,7 +26,8 @@ from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
 from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, load_run_checkpoint,
                                        load_training_data, peak_rss_mb)
-from ghsplat_jax.train.state import TrainState, initial_surfels, new_state, pad_params, random_init_box
+from ghsplat_jax.train.state import (TrainState, initial_surfels, needs_random_init, new_state, pad_params,
+                                    random_init_box)
 from ghsplat_jax.train.step import make_train_step
 from ghsplat_jax.train.strategy import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
 
@@ -108,7 +109,7 @@ def warn_about_inputs(config: TrainConfig, dataset) -> list[str]:
     cannot notice: random initialisation for want of SfM points, or too few training views."""
     messages = []
     points = 0 if dataset.points is None else int(np.sum(np.all(np.isfinite(dataset.points), axis=1)))
-    if points < config.init_min_points:
+    if needs_random_init(points, config):
         messages.append(
             f"{config.data}: {points} SfM points (init_min_points is {config.init_min_points}), so the surfels start "
             f"at {config.init_random_points} random points in the camera box; expect lower accuracy and slower "
