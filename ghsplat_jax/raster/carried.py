@@ -32,7 +32,7 @@ from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Stat
                                           ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
 
-# Columns of the per-pair table: homography about the centre, det(M), filter centre, opacity,
+# Columns of the per-surfel table (gathered per pair): homography about the centre, det(M), filter centre, opacity,
 # centre depth (the filter branch's depth), colour and normal.
 PC, A, B, DET, CX, CY, OPACITY, DEPTH = slice(0, 3), slice(3, 6), slice(6, 9), 9, 10, 11, 12, 13
 COLOR_NORMAL = slice(14, 20)
@@ -127,9 +127,9 @@ def _slice(x, i, batch):
     return jax.lax.dynamic_slice_in_dim(x, i * batch, batch)
 
 
-def _batch_inputs(table, valid, tile, first, i, st: Static):
+def _batch_inputs(table, surfel, valid, tile, first, i, st: Static):
     """Batch i: fields (F, K, B), valid (K, B), tile (B,), first (B,), corner offsets (K, B)."""
-    rows = _slice(table, i, st.batch_chunks)                            # (B, K, F)
+    rows = table[_slice(surfel, i, st.batch_chunks)]                    # (B, K, F)
     f = jnp.moveaxis(rows, 2, 0).swapaxes(1, 2)
     t = _slice(tile, i, st.batch_chunks)
     return f, _slice(valid, i, st.batch_chunks).T, t, _slice(first, i, st.batch_chunks), _corner_offsets(f, t, st)
@@ -161,13 +161,13 @@ def _pixel_sums(weight, z, f, st: Static):
                             per_pixel[..., 2:]], axis=-1)
 
 
-def _forward(st: Static, table, valid, tile, first):
+def _forward(st: Static, table, surfel, valid, tile, first):
     num_chunks, pixels = tile.shape[0], st.tile_size ** 2
     batch = st.batch_chunks
 
     def body(i, state):
         log_t, totals, z_last, selected = state
-        f, v, t, fst, corner = _batch_inputs(table, valid, tile, first, i, st)
+        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
         alpha, z, _ = _evaluate(f, *_offsets(corner, st), v, st)
         _, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
         totals = totals.at[t].add(_pixel_sums(weight, z, f, st), mode="drop")
@@ -187,15 +187,18 @@ def _forward(st: Static, table, valid, tile, first):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def composite_carried(st: Static, table, valid, tile, first):
-    """Per-tile feature sums (T, P, F) and median depth (T, P) from the chunked pair table
-    (W, K, NUM_FIELDS); valid (W, K), tile (W,), first (W,) as `binning.Layout` lays them out."""
-    return _forward(st, table, valid, tile, first)[0]
+def composite_carried(st: Static, table, surfel, valid, tile, first):
+    """Per-tile feature sums (T, P, F) and median depth (T, P) from the per-surfel table
+    (N, NUM_FIELDS) and the chunked pairs' surfels (W, K); valid (W, K), tile (W,), first (W,)
+    as `binning.Layout` lays them out. Each batch gathers its own rows, and the backward
+    scatter-adds into an (N, NUM_FIELDS) gradient: a (W, K, NUM_FIELDS) pair table and its
+    zeroed gradient cost more than the compositor's gathers."""
+    return _forward(st, table, surfel, valid, tile, first)[0]
 
 
-def _fwd(st, table, valid, tile, first):
-    outputs, (totals, selected) = _forward(st, table, valid, tile, first)
-    return outputs, (table, valid, tile, first, totals, selected)
+def _fwd(st, table, surfel, valid, tile, first):
+    outputs, (totals, selected) = _forward(st, table, surfel, valid, tile, first)
+    return outputs, (table, surfel, valid, tile, first, totals, selected)
 
 
 def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
@@ -231,7 +234,7 @@ def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
 
 
 def _bwd(st: Static, residuals, cotangents):
-    table, valid, tile, first, totals, selected = residuals
+    table, surfel, valid, tile, first, totals, selected = residuals
     g_totals, g_median = cotangents
     pixels = st.tile_size ** 2
     batch = st.batch_chunks
@@ -244,7 +247,7 @@ def _bwd(st: Static, residuals, cotangents):
 
     def body(i, state):
         log_t, prefix, d_table = state
-        f, v, t, fst, corner = _batch_inputs(table, valid, tile, first, i, st)
+        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
         alpha, z, aux = _evaluate(f, *_offsets(corner, st), v, st)
         t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
         g = g_fields[:, t]                                                # (F, B, P)
@@ -270,12 +273,12 @@ def _bwd(st: Static, residuals, cotangents):
         d_geometry = _pullback(f, corner, aux, d_alpha, d_z, st)        # (14, K, B)
         d_const = jnp.einsum("kbp,cbp->kbc", weight, g_const)            # (K, B, 6)
         d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)
-        d_table = jax.lax.dynamic_update_slice_in_dim(d_table, d_rows, i * batch, 0)
+        d_table = d_table.at[_slice(surfel, i, batch)].add(d_rows)         # padding pairs add zeros
         return log_t, prefix, d_table
 
     init = (jnp.zeros(pixels), jnp.zeros(pixels), jnp.zeros_like(table))
     _, _, d_table = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
-    return d_table, None, None, None
+    return d_table, None, None, None, None
 
 
 composite_carried.defvjp(_fwd, _bwd)

@@ -119,7 +119,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
         valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
         surfel = layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)]
         if cfg.compositor == "carried":
-            totals, median = carried.composite_carried(st, carried.pair_table(p)[surfel], valid,
+            totals, median = carried.composite_carried(st, carried.pair_table(p), surfel, valid,
                                                        layout.chunk_tile, layout.chunk_first)
         else:
             totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
