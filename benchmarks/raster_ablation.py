@@ -41,7 +41,7 @@ RESULTS = Path(__file__).parent / "results"
 
 
 # Changes of the run's settings timed beside the tile x chunk grid.
-VARIANTS = {"batch32": dict(batch_chunks=32), "batch128": dict(batch_chunks=128), "box3": dict(bounds="box3"),
+VARIANTS = {"batch32": dict(batch_chunks=32), "batch64": dict(batch_chunks=64), "box3": dict(bounds="box3"),
             "logspace": dict(compositor="logspace", bounds="box3", batch_chunks=16),
             "logspace-autodiff": dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16)}
 

@@ -32,8 +32,8 @@ from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Stat
                                           ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
 
-# Columns of the per-surfel table (gathered per pair): homography about the centre, det(M), filter centre, opacity,
-# centre depth (the filter branch's depth), colour and normal.
+# Columns of the per-surfel table (gathered per pair): homography about the centre, det(M),
+# filter centre, opacity, centre depth (the filter branch's depth), colour and normal.
 PC, A, B, DET, CX, CY, OPACITY, DEPTH = slice(0, 3), slice(3, 6), slice(6, 9), 9, 10, 11, 12, 13
 COLOR_NORMAL = slice(14, 20)
 NUM_FIELDS = 20
