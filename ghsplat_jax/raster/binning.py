@@ -91,7 +91,10 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     surfel = order[owner]
     local = slot - starts[owner]
     row_len = (hi[surfel, 0] - lo[surfel, 0] + 1)
-    tile = (lo[surfel, 1] + local // row_len) * grid.tiles_x + lo[surfel, 0] + local % row_len
+    # Truncating division (exact here: both are non-negative): with floor division's sign
+    # fix-ups, XLA:CPU takes 3.6x as long for this divide and remainder (524k pairs, measured).
+    row, col = jax.lax.div(local, row_len), jax.lax.rem(local, row_len)
+    tile = (lo[surfel, 1] + row) * grid.tiles_x + lo[surfel, 0] + col
     keep = slot < num_pairs
     if tight:
         keep &= tile_touched(p, surfel, tile, grid)
@@ -157,8 +160,8 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGri
     Exact up to float32 rounding, which a small margin covers; unbounded conics keep every tile."""
     ts = grid.tile_size
     c = p.center[surfel]
-    x0 = (tile % grid.tiles_x * ts).astype(jnp.float32) + 0.5 - c[:, 0] - TILE_MARGIN
-    y0 = (tile // grid.tiles_x * ts).astype(jnp.float32) + 0.5 - c[:, 1] - TILE_MARGIN
+    x0 = (jax.lax.rem(tile, grid.tiles_x) * ts).astype(jnp.float32) + 0.5 - c[:, 0] - TILE_MARGIN
+    y0 = (jax.lax.div(tile, grid.tiles_x) * ts).astype(jnp.float32) + 0.5 - c[:, 1] - TILE_MARGIN
     x1, y1 = x0 + (ts - 1 + 2 * TILE_MARGIN), y0 + (ts - 1 + 2 * TILE_MARGIN)
     # Filter disc: the rectangle's closest point to the centre.
     nx, ny = jnp.clip(0.0, x0, x1), jnp.clip(0.0, y0, y1)
