@@ -84,11 +84,17 @@ def test_packed_tile_sort_matches_the_two_key_sort(monkeypatch):
                                       err_msg=field)
 
 
-@settings(max_examples=60, deadline=None)
-@given(arrays(np.float32, st.integers(0, 300), elements=st.one_of(
+@settings(max_examples=30, deadline=None)
+@given(arrays(np.float32, st.sampled_from([0, 1, 2, 37, 300]), elements=st.one_of(
     st.floats(-1e3, 1e3, width=32), st.sampled_from([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-40, 2.5]))))
 def test_radix_depth_order_is_the_stable_argsort(depths):
     """The depth order the pairs are generated in equals the stable argsort it replaces: ties,
     signed zeros, infinities, NaNs and denormals (which XLA:CPU compares as zero) included."""
     x = jnp.asarray(depths)
+    np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x)), np.asarray(jnp.argsort(x, stable=True)))
+
+
+def test_radix_depth_order_with_three_passes():
+    """Above 65,536 surfels each pass sorts a 15-bit digit: three passes, still the stable order."""
+    x = jnp.asarray(np.random.default_rng(0).integers(0, 500, 70001).astype(np.float32) / 7)  # many ties
     np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x)), np.asarray(jnp.argsort(x, stable=True)))
