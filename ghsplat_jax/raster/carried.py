@@ -13,8 +13,9 @@ carry, carries g . (prefix of w f) the same way (d/dalpha_i sum_j w_j f_j = T_i 
 S_i / (1 - alpha_i) with S_i = total - inclusive prefix), and pulls back through the per-pixel
 evaluation by hand: no autodiff inside the loop, and no per-chunk residuals but the median's.
 
-Per pair, a surfel is stored as the homography of its ray transform about the filter centre c:
-the pixel-plane cross product k x l is linear in the pixel, p(x) = a x + b y + c0 with
+Each surfel is stored (and gathered per pair, batch by batch) as the homography of its ray
+transform about the filter centre c: the pixel-plane cross product k x l is linear in the pixel,
+p(x) = a x + b y + c0 with
 a = M1 x M2, b = M2 x M0, c0 = M0 x M1 (M's rows), so p = pc + a dx + b dy with (dx, dy) = x - c
 and pc = p(c). Then (u, v) = (p0, p1) / p2 and, since M2 . a = M2 . b = 0, the hit depth
 u M20 + v M21 + M22 is det(M) / p2. Same contract as `project.evaluate_pixels`, fewer flops.

@@ -140,7 +140,7 @@ class CameraRenderer:
             def many(surfels, Ks, w2cs):
                 self.traces += 1  # runs only while tracing
                 # One camera after another: under vmap the compositor's batch slices become gathers
-                # inside every per-pixel fusion, which made a 640x480 frame 2x slower on a CPU.
+                # inside every per-pixel fusion, which made a 640x480 frame 3x slower on a CPU.
                 out = jax.lax.map(lambda Kw: render(surfels, Camera(Kw[0], Kw[1], width, height)), (Ks, w2cs))
                 stats = getattr(out, "stats", None)
                 overflow = jnp.sum(stats.overflow) if stats is not None else jnp.int32(0)
