@@ -29,6 +29,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from ghsplat_jax.raster.binning import tile_corner
 from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Static, local_pixels,
                                           ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
@@ -56,8 +57,7 @@ def pair_table(p: Projected) -> jax.Array:
 
 def _corner_offsets(f, tile, st: Static):
     """(K, B) offsets of each chunk's tile corner from each pair's filter centre."""
-    x0 = ((tile % st.tiles_x) * st.tile_size).astype(jnp.float32)
-    y0 = ((tile // st.tiles_x) * st.tile_size).astype(jnp.float32)
+    x0, y0 = tile_corner(tile, st.tiles_x, st.tile_size)
     return x0[None] - f[CX], y0[None] - f[CY]
 
 

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.raster.binning import tile_corner
 from ghsplat_jax.raster.project import evaluate_pixels
 
 # Columns of the per-tile sums: weight, colour, depth, normal, NDC depth and its square.
@@ -75,8 +76,7 @@ def local_pixels(ts: int) -> tuple[np.ndarray, np.ndarray]:
 def tile_pixels(tile: jax.Array, st: Static) -> jax.Array:
     """(ts*ts, 2) pixel-centre coordinates of a tile, row-major."""
     xl, yl = local_pixels(st.tile_size)
-    x0 = ((tile % st.tiles_x) * st.tile_size).astype(jnp.float32)
-    y0 = ((tile // st.tiles_x) * st.tile_size).astype(jnp.float32)
+    x0, y0 = tile_corner(tile, st.tiles_x, st.tile_size)
     return jnp.stack([x0[..., None] + xl, y0[..., None] + yl], axis=-1)
 
 
