@@ -46,7 +46,8 @@ def greenhouse_surfels(n: int, seed: int = 0):
 
 
 def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_width: int | None,
-          batchings=("map",)) -> dict:
+          variants=("beams/map",)) -> dict:
+    """Camera and LiDAR timings; LiDAR `variants` are "sampling/batching" (the first is the headline)."""
     import jax
 
     from ghsplat_jax.sim import beams, robot as robot_mod
@@ -69,8 +70,10 @@ def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_w
         f = renderer.render(s, cam, r.map_from_optical(*p))
         cam_times.append(time.perf_counter() - t0)
     lidars = {}
-    for batching in batchings:
-        lidar = Lidar(beams.get_pattern(lidar_name), face_width=face_width, depth="median", batching=batching)
+    for variant in variants:
+        sampling, batching = variant.split("/")
+        lidar = Lidar(beams.get_pattern(lidar_name), face_width=face_width, depth="median", batching=batching,
+                      sampling=sampling)
         t0 = time.perf_counter()
         lidar.scan(s, r.map_from_lidar(*poses[0]))
         lidar_first = time.perf_counter() - t0
@@ -80,8 +83,9 @@ def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_w
             t0 = time.perf_counter()
             scan = lidar.scan(s, r.map_from_lidar(*p), seed=i)
             lidar_times.append(time.perf_counter() - t0)
-        lidars[batching] = {
-            "pattern": lidar.pattern.name, "batching": batching, "face": [lidar.geom.width, lidar.geom.height],
+        lidars[variant] = {
+            "pattern": lidar.pattern.name, "sampling": sampling, "batching": batching,
+            "face": [lidar.geom.width, lidar.geom.height],
             "first_call_s": lidar_first, "median_s": float(np.median(lidar_times)),
             "scans_per_s": float(1 / np.median(lidar_times)), "compilations_warmup": lidar_warm_traces,
             "compilations_timed": lidar.traces - lidar_warm_traces,
@@ -92,7 +96,7 @@ def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_w
                                   "compilations_warmup": cam_warm_traces,
                                   "compilations_timed": renderer.traces - cam_warm_traces, "pair_capacity": renderer.pair_capacity,
                                   "coverage": float(np.mean(f.alpha > 0.5))},
-        "lidar": lidars[batchings[0]], "lidar_variants": lidars,
+        "lidar": lidars[variants[0]], "lidar_variants": lidars,
         "repeats": repeats,
     }
 
@@ -105,8 +109,9 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--lidar", default="vlp16")
     ap.add_argument("--face-width", type=int, default=None, help="LiDAR face width (default: columns/pi)")
-    ap.add_argument("--lidar-batching", nargs="+", default=["map", "vmap"], choices=["vmap", "map"],
-                    help="face batching variants to time (the first, the Lidar default, is the headline number)")
+    ap.add_argument("--lidar-variants", nargs="+", default=["beams/map", "faces/map", "beams/vmap"],
+                    choices=["beams/map", "faces/map", "beams/vmap", "faces/vmap"],
+                    help="LiDAR sampling/batching variants to time (the first, the Lidar default, is the headline)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sim_speed"))
     args = ap.parse_args(argv)
 
@@ -117,7 +122,7 @@ def main(argv=None) -> int:
     runs = []
     for n in args.sizes:
         load_before = os.getloadavg()
-        res = bench(n, args.repeats, args.width, args.height, args.lidar, args.face_width, tuple(args.lidar_batching))
+        res = bench(n, args.repeats, args.width, args.height, args.lidar, args.face_width, tuple(args.lidar_variants))
         res["load_average_before_after"] = [load_before[0], os.getloadavg()[0]]
         runs.append(res)
         print(json.dumps(res), flush=True)
@@ -145,7 +150,7 @@ def main(argv=None) -> int:
     width = 0.8 / len(variants)
     for k, v in enumerate(variants):
         ax[1].bar(np.arange(len(runs)) + (k - (len(variants) - 1) / 2) * width,
-                  [r["lidar_variants"][v]["scans_per_s"] for r in runs], width, label=f"faces: {v}", color=f"C{k + 1}")
+                  [r["lidar_variants"][v]["scans_per_s"] for r in runs], width, label=v, color=f"C{k + 1}")
     ax[1].set_xticks(np.arange(len(runs)), [str(int(n)) + "k" for n in ns])
     ax[1].legend()
     ax[1].set_title(f"LiDAR {runs[0]['lidar']['pattern']} (scans/s)")

@@ -87,7 +87,10 @@ def test_foxglove_client_receives_the_simulators_image_and_cloud():
         sink.close()
     assert set(received) == set(wanted)
 
-    expected = {topic: (msg, t) for topic, msg, t in reversed(sim)}  # the first message of each topic
+    # The subscription may start mid-pass: compare each topic's first received message with the
+    # simulated message of the same log time.
+    by_time = {(topic, m.to_nanoseconds(t)): (msg, t) for topic, msg, t in sim}
+    expected = {topic: by_time[topic, log_time] for topic, (log_time, _) in received.items()}
     image_msg, t_image = expected["/render"]
     log_time, payload = received["/render"]
     image = _decoder(channels["/render"]).FromString(payload)

@@ -106,10 +106,10 @@ def surfel_room():
     return surfaces.box((-3.0, -2.5, 0.0), (3.0, 2.5, 2.5), 0.15, surfaces.constant_colour((0.6, 0.5, 0.4)))
 
 
-@pytest.mark.parametrize("mode", ["expected", "median"])
-def test_exact_geometry_on_surfel_room(surfel_room, mode):
+@pytest.mark.parametrize("mode,sampling", [("expected", "beams"), ("median", "beams"), ("median", "faces")])
+def test_exact_geometry_on_surfel_room(surfel_room, mode, sampling):
     p = beams.get_pattern("vlp16").replace(columns=360)
-    L = lidar.Lidar(p, face_width=160, depth=mode)
+    L = lidar.Lidar(p, face_width=160, depth=mode, sampling=sampling)
     errs = []
     for i, (x, y, yaw) in enumerate([(0.4, -0.3, 0.2), (-0.8, 0.5, 2.5)]):
         T = frames.planar(x, y, yaw) @ frames.from_xyz_rpy((0.0, 0.0, 0.8), (0, 0, 0))
@@ -120,6 +120,16 @@ def test_exact_geometry_on_surfel_room(surfel_room, mode):
     err = np.concatenate(errs)
     assert np.median(err) < 0.01 and np.mean(err < 0.05) > 0.95, (np.median(err), np.mean(err < 0.05))
     assert L.traces == 1  # two poses, one compilation
+
+
+def test_sampling_choices_are_checked():
+    p = beams.get_pattern("vlp16").replace(columns=360)
+    assert lidar.Lidar(p).sampling == "beams"
+    assert lidar.Lidar(p, render_fn=box_room_renderer(LO, HI)).sampling == "faces"
+    with pytest.raises(ValueError, match="render_fn"):
+        lidar.Lidar(p, render_fn=box_room_renderer(LO, HI), sampling="beams")
+    with pytest.raises(ValueError, match="sampling"):
+        lidar.Lidar(p, sampling="rays")
 
 
 @pytest.mark.slow

@@ -58,17 +58,25 @@ def tile_corner(tile: jax.Array, tiles_x: int, tile_size: int) -> tuple[jax.Arra
     return x0.astype(jnp.float32), y0.astype(jnp.float32)
 
 
-def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid, tight: bool = True):
+def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid, tight: bool = True,
+                points: bool = False):
     """Inclusive tile rectangles (x0, y0, x1, y1) and candidate pair counts per surfel, from the
-    opacity-aware box (tight) or the 3-sigma box."""
+    opacity-aware box (tight) or the 3-sigma box: the tiles of the pixel centres inside it, or
+    with `points` (sample points anywhere in the image) every tile the box overlaps."""
     ts = grid.tile_size
-    # Pixel centres j + 0.5 inside the box.
-    lo = jnp.ceil((p.bin_min if tight else p.box_min) - 0.5)
-    hi = jnp.floor((p.bin_max if tight else p.box_max) - 0.5)
+    box_min, box_max = (p.bin_min, p.bin_max) if tight else (p.box_min, p.box_max)
     size = jnp.array([width, height], jnp.float32)
-    hits = p.visible & jnp.all((hi >= 0) & (lo <= size - 1) & (lo <= hi), axis=1)
-    lo = jnp.clip(lo, 0, size - 1).astype(jnp.int32) // ts
-    hi = jnp.clip(hi, 0, size - 1).astype(jnp.int32) // ts
+    if points:
+        lo, hi, last = box_min, box_max, size
+    else:  # pixel centres j + 0.5 inside the box
+        lo, hi, last = jnp.ceil(box_min - 0.5), jnp.floor(box_max - 0.5), size - 1
+    hits = p.visible & jnp.all((hi >= 0) & (lo <= last) & (lo <= hi), axis=1)
+    # A point on the image's right or bottom edge belongs to the last tile.
+    last_tile = jnp.array([grid.tiles_x - 1, grid.tiles_y - 1], jnp.int32)
+    lo = jnp.clip(lo, 0, last).astype(jnp.int32) // ts
+    hi = jnp.clip(hi, 0, last).astype(jnp.int32) // ts
+    if points:
+        lo, hi = jnp.minimum(lo, last_tile), jnp.minimum(hi, last_tile)
     extent = hi - lo + 1
     counts = jnp.where(hits, extent[:, 0] * extent[:, 1], 0)
     return lo, hi, counts
@@ -85,9 +93,11 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
 
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
-              chunk_size: int, num_chunks: int, tight: bool = True) -> Layout:
+              chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | None = None) -> Layout:
+    """`boxes` (T, 4): render only points inside these per-tile boxes (`samples.PixelSamples`):
+    tiles with an empty box get no pairs, and the exact test uses the box, not the tile."""
     n = p.depth.shape[0]
-    lo, hi, counts = tile_ranges(p, width, height, grid, tight)
+    lo, hi, counts = tile_ranges(p, width, height, grid, tight, boxes is not None)
     order = stable_argsort(p.depth)
     sorted_counts = counts[order]
     ends = jnp.cumsum(sorted_counts)
@@ -104,8 +114,10 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     row, col = jax.lax.div(local, row_len), jax.lax.rem(local, row_len)
     tile = (lo[surfel, 1] + row) * grid.tiles_x + lo[surfel, 0] + col
     keep = slot < num_pairs
+    if boxes is not None:
+        keep &= boxes[tile, 0] <= boxes[tile, 2]
     if tight:
-        keep &= tile_touched(p, surfel, tile, grid)
+        keep &= tile_touched(p, surfel, tile, grid, boxes)
     tile = jnp.where(keep, tile, grid.num_tiles)
     tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n)
 
@@ -162,15 +174,21 @@ def _tile_major(tile, owner, order, num_tiles: int, n: int):
     return jax.lax.sort((tile, order[owner]), num_keys=1, is_stable=True)
 
 
-def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGrid) -> jax.Array:
-    """Whether a tile's pixel centres meet the region where the surfel's alpha can reach 1/255:
-    its ellipse (the minimum of the conic over the tile's rectangle is <= 0) or its filter disc.
-    Exact up to float32 rounding, which a small margin covers; unbounded conics keep every tile."""
+def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGrid,
+                 boxes: jax.Array | None = None) -> jax.Array:
+    """Whether a tile's pixel centres (or the box of its sample points) meet the region where
+    the surfel's alpha can reach 1/255: its ellipse (the minimum of the conic over the
+    rectangle is <= 0) or its filter disc. Exact up to float32 rounding, which a small margin
+    covers; unbounded conics keep every tile."""
     ts = grid.tile_size
     c = p.center[surfel]
-    x0, y0 = tile_corner(tile, grid.tiles_x, ts)
-    x0, y0 = x0 + 0.5 - c[:, 0] - TILE_MARGIN, y0 + 0.5 - c[:, 1] - TILE_MARGIN
-    x1, y1 = x0 + (ts - 1 + 2 * TILE_MARGIN), y0 + (ts - 1 + 2 * TILE_MARGIN)
+    if boxes is None:
+        x0, y0 = tile_corner(tile, grid.tiles_x, ts)
+        x0, y0 = x0 + 0.5 - c[:, 0] - TILE_MARGIN, y0 + 0.5 - c[:, 1] - TILE_MARGIN
+        x1, y1 = x0 + (ts - 1 + 2 * TILE_MARGIN), y0 + (ts - 1 + 2 * TILE_MARGIN)
+    else:
+        x0, y0 = boxes[tile, 0] - c[:, 0] - TILE_MARGIN, boxes[tile, 1] - c[:, 1] - TILE_MARGIN
+        x1, y1 = boxes[tile, 2] - c[:, 0] + TILE_MARGIN, boxes[tile, 3] - c[:, 1] + TILE_MARGIN
     # Filter disc: the rectangle's closest point to the centre.
     nx, ny = jnp.clip(0.0, x0, x1), jnp.clip(0.0, y0, y1)
     reach = p.reach[surfel]
@@ -191,10 +209,10 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, grid: TileGri
 
 
 def count_pairs(p: Projected, width: int, height: int, grid: TileGrid,
-                tight: bool = True) -> tuple[jax.Array, jax.Array]:
+                tight: bool = True, points: bool = False) -> tuple[jax.Array, jax.Array]:
     """(candidate pairs, candidates of the fullest tile) from the tile rectangles via a 2D
     difference array (the buffer must hold every candidate; the exact test runs after)."""
-    lo, hi, counts = tile_ranges(p, width, height, grid, tight)
+    lo, hi, counts = tile_ranges(p, width, height, grid, tight, points)
     hit = counts > 0
     diff = jnp.zeros((grid.tiles_y + 1, grid.tiles_x + 1), jnp.int32)
     one = hit.astype(jnp.int32)

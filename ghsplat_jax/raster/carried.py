@@ -19,6 +19,9 @@ p(x) = a x + b y + c0 with
 a = M1 x M2, b = M2 x M0, c0 = M0 x M1 (M's rows), so p = pc + a dx + b dy with (dx, dy) = x - c
 and pc = p(c). Then (u, v) = (p0, p1) / p2 and, since M2 . a = M2 . b = 0, the hit depth
 u M20 + v M21 + M22 is det(M) / p2. Same contract as `project.evaluate_pixels`, fewer flops.
+
+With `offsets` (T, S, 2) (`samples.PixelSamples`), a tile's S sample points stand in for its
+pixels: the same math, with each batch gathering its tiles' points instead of a constant grid.
 """
 
 from __future__ import annotations
@@ -136,10 +139,18 @@ def _batch_inputs(table, surfel, valid, tile, first, i, st: Static):
     return f, _slice(valid, i, st.batch_chunks).T, t, _slice(first, i, st.batch_chunks), _corner_offsets(f, t, st)
 
 
-def _offsets(corner, st: Static):
-    """(dx, dy) of every pixel centre from each pair's filter centre, (K, B, P)."""
-    xl, yl = local_pixels(st.tile_size)
-    return corner[0][..., None] + xl, corner[1][..., None] + yl
+def _local_points(offsets, t, st: Static):
+    """x and y of the points evaluated in each chunk's tile, relative to its corner: the pixel
+    centres as NumPy literals (P,), or the tiles' sample points (B, S)."""
+    if offsets is None:
+        return local_pixels(st.tile_size)
+    xy = jnp.take(offsets, t, axis=0, mode="clip")
+    return xy[..., 0], xy[..., 1]
+
+
+def _offsets(corner, local):
+    """(dx, dy) of every evaluated point from each pair's filter centre, (K, B, P)."""
+    return corner[0][..., None] + local[0], corner[1][..., None] + local[1]
 
 
 def _num_batches(valid, st: Static):
@@ -162,14 +173,14 @@ def _pixel_sums(weight, z, f, st: Static):
                             per_pixel[..., 2:]], axis=-1)
 
 
-def _forward(st: Static, table, surfel, valid, tile, first):
-    num_chunks, pixels = tile.shape[0], st.tile_size ** 2
+def _forward(st: Static, table, surfel, valid, tile, first, offsets):
+    num_chunks, pixels = tile.shape[0], st.pixels
     batch = st.batch_chunks
 
     def body(i, state):
         log_t, totals, z_last, selected = state
         f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
-        alpha, z, _ = _evaluate(f, *_offsets(corner, st), v, st)
+        alpha, z, _ = _evaluate(f, *_offsets(corner, _local_points(offsets, t, st)), v, st)
         _, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
         totals = totals.at[t].add(_pixel_sums(weight, z, f, st), mode="drop")
         if st.median:
@@ -188,23 +199,24 @@ def _forward(st: Static, table, surfel, valid, tile, first):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def composite_carried(st: Static, table, surfel, valid, tile, first):
+def composite_carried(st: Static, table, surfel, valid, tile, first, offsets=None):
     """Per-tile feature sums (T, P, F) and median depth (T, P) from the per-surfel table
     (N, NUM_FIELDS) and the chunked pairs' surfels (W, K); valid (W, K), tile (W,), first (W,)
-    as `binning.Layout` lays them out. Each batch gathers its own rows, and the backward
-    scatter-adds into an (N, NUM_FIELDS) gradient: a (W, K, NUM_FIELDS) pair table and its
-    zeroed gradient cost more than the compositor's gathers."""
-    return _forward(st, table, surfel, valid, tile, first)[0]
+    as `binning.Layout` lays them out; `offsets` (T, S, 2): sample points instead of pixels.
+    Each batch gathers its own rows, and the backward scatter-adds into an (N, NUM_FIELDS)
+    gradient: a (W, K, NUM_FIELDS) pair table and its zeroed gradient cost more than the
+    compositor's gathers."""
+    return _forward(st, table, surfel, valid, tile, first, offsets)[0]
 
 
-def _fwd(st, table, surfel, valid, tile, first):
-    outputs, (totals, selected) = _forward(st, table, surfel, valid, tile, first)
-    return outputs, (table, surfel, valid, tile, first, totals, selected)
+def _fwd(st, table, surfel, valid, tile, first, offsets):
+    outputs, (totals, selected) = _forward(st, table, surfel, valid, tile, first, offsets)
+    return outputs, (table, surfel, valid, tile, first, offsets, totals, selected)
 
 
-def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
+def _pullback(f, corner, local, aux, d_alpha, d_z):
     """Hand-derived gradients (NUM_FIELDS - 6, K, B) of the geometric per-pair fields (all but
-    colour and normal) from d alpha and d z."""
+    colour and normal) from d alpha and d z; `local` as `_local_points` gives it."""
     u, v, inv, rho, hit, e, oe = aux
     live = d_alpha != 0
     unclamped = live & (oe < 0.99)
@@ -222,9 +234,10 @@ def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
     # Sums over pixels against [1, dx, dy]; dx = ox + x_local, so a matmul with the local basis.
     # One per plane: stacking the planes first makes XLA:CPU emit one unvectorised loop that
     # picks a plane per element, which cost more than all the rest of the backward.
-    xl, yl = local_pixels(st.tile_size)
-    basis = jnp.stack([jnp.ones_like(xl), xl, yl], axis=1)              # (P, 3)
-    s = jnp.stack([plane @ basis for plane in (g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter)])  # (7, K, B, 3)
+    xl, yl = local
+    basis = jnp.stack([jnp.ones_like(xl), xl, yl], axis=-1)             # (P, 3), or (B, S, 3) for samples
+    against = (lambda plane: plane @ basis) if basis.ndim == 2 else (lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis))
+    s = jnp.stack([against(plane) for plane in (g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter)])  # (7, K, B, 3)
     ox, oy = corner
     total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]
     d_pc, d_a, d_b = total[:3], sx[:3], sy[:3]
@@ -235,9 +248,9 @@ def _pullback(f, corner, aux, d_alpha, d_z, st: Static):
 
 
 def _bwd(st: Static, residuals, cotangents):
-    table, surfel, valid, tile, first, totals, selected = residuals
+    table, surfel, valid, tile, first, offsets, totals, selected = residuals
     g_totals, g_median = cotangents
-    pixels = st.tile_size ** 2
+    pixels = st.pixels
     batch = st.batch_chunks
     pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
     g_totals, g_median, selected = pad(g_totals, 0.0), pad(g_median, 0.0), pad(selected, -1)
@@ -249,7 +262,8 @@ def _bwd(st: Static, residuals, cotangents):
     def body(i, state):
         log_t, prefix, d_table = state
         f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
-        alpha, z, aux = _evaluate(f, *_offsets(corner, st), v, st)
+        local = _local_points(offsets, t, st)
+        alpha, z, aux = _evaluate(f, *_offsets(corner, local), v, st)
         t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
         g = g_fields[:, t]                                                # (F, B, P)
         g_const = jnp.concatenate([g[1:4], g[5:8]], axis=0)               # (6, B, P)
@@ -271,7 +285,7 @@ def _bwd(st: Static, residuals, cotangents):
             chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
             median_here = (selected[t] == chunk_id[:, None])[None]
             d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
-        d_geometry = _pullback(f, corner, aux, d_alpha, d_z, st)        # (14, K, B)
+        d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
         d_const = jnp.einsum("kbp,cbp->kbc", weight, g_const)            # (K, B, 6)
         d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)
         d_table = d_table.at[_slice(surfel, i, batch)].add(d_rows)         # padding pairs add zeros
@@ -279,7 +293,7 @@ def _bwd(st: Static, residuals, cotangents):
 
     init = (jnp.zeros(pixels), jnp.zeros(pixels), jnp.zeros_like(table))
     _, _, d_table = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
-    return d_table, None, None, None, None
+    return d_table, None, None, None, None, None
 
 
 composite_carried.defvjp(_fwd, _bwd)

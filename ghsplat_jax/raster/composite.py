@@ -50,6 +50,12 @@ class Static:
     batch_chunks: int
     median: bool = True       # the median depth is wanted (the carried compositor skips it otherwise)
     distortion: bool = True   # the NDC depth sums of the distortion term are wanted (likewise)
+    samples: int = 0          # sample slots per tile (`samples.PixelSamples`); 0: every pixel of the tile
+
+    @property
+    def pixels(self) -> int:
+        """Points evaluated per tile."""
+        return self.samples or self.tile_size ** 2
 
 
 @jax.tree_util.register_dataclass

@@ -16,6 +16,7 @@ from ghsplat_jax.core.surfels import Surfels
 from ghsplat_jax.raster import binning, carried, composite, naive
 from ghsplat_jax.raster.config import RasterConfig, RasterOverflowError, RasterStats, RenderOutput
 from ghsplat_jax.raster.project import Projected, project
+from ghsplat_jax.raster.samples import PixelSamples
 
 MIN_CAPACITY = 1 << 12
 
@@ -61,8 +62,12 @@ def _safe_divide(num, den):
 
 
 def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
-             capacity: int) -> RenderOutput:
-    img = _image(totals, grid, cam.width, cam.height)
+             capacity: int, samples: PixelSamples | None) -> RenderOutput:
+    if samples is None:
+        to_pixels = lambda tiles: _image(tiles, grid, cam.width, cam.height)
+    else:
+        to_pixels = lambda tiles: tiles.reshape((-1,) + tiles.shape[2:])[samples.index]
+    img = to_pixels(totals)
     a = img[..., composite.A]
     background = jnp.asarray(cfg.background, jnp.float32)
     d1, d2 = img[..., composite.M1], img[..., composite.M2]
@@ -76,7 +81,7 @@ def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected,
         max_tile_pairs=jnp.max(layout.tile_count), num_kept=layout.num_kept.astype(jnp.int32))
     # sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2; rounding can make it slightly negative.
     distortion = jnp.maximum(a * d2 - d1 * d1, 0.0) if cfg.distortion else jnp.zeros_like(a)
-    median = _image(median, grid, cam.width, cam.height) if cfg.median else jnp.zeros_like(a)
+    median = to_pixels(median) if cfg.median else jnp.zeros_like(a)
     return RenderOutput(
         rgb=img[..., composite.RGB] + (1.0 - a[..., None]) * background, alpha=a,
         depth=_safe_divide(img[..., composite.Z], a), median_depth=median,
@@ -84,30 +89,38 @@ def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected,
         visible=p.visible, radii=radii, stats=stats)
 
 
-def _empty(cam: Camera, cfg: RasterConfig) -> RenderOutput:
-    h, w = cam.height, cam.width
+def _empty(cam: Camera, cfg: RasterConfig, samples: PixelSamples | None = None) -> RenderOutput:
+    shape = (cam.height, cam.width) if samples is None else samples.index.shape
     zero = jnp.int32(0)
     return RenderOutput(
-        rgb=jnp.broadcast_to(jnp.asarray(cfg.background, jnp.float32), (h, w, 3)),
-        alpha=jnp.zeros((h, w)), depth=jnp.zeros((h, w)), median_depth=jnp.zeros((h, w)),
-        normal=jnp.zeros((h, w, 3)), distortion=jnp.zeros((h, w)), visible=jnp.zeros((0,), bool),
+        rgb=jnp.broadcast_to(jnp.asarray(cfg.background, jnp.float32), shape + (3,)),
+        alpha=jnp.zeros(shape), depth=jnp.zeros(shape), median_depth=jnp.zeros(shape),
+        normal=jnp.zeros(shape + (3,)), distortion=jnp.zeros(shape), visible=jnp.zeros((0,), bool),
         radii=jnp.zeros((0,)), stats=RasterStats(zero, zero, zero, zero, zero, zero, zero, zero))
 
 
 def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
-              means2d_probe: jax.Array | None = None, tile_slots: int | None = None) -> RenderOutput:
+              means2d_probe: jax.Array | None = None, tile_slots: int | None = None,
+              samples: PixelSamples | None = None) -> RenderOutput:
     """Render with a static pair capacity; pairs beyond it are counted in stats.overflow.
 
     `tile_slots` is the dense baseline's per-tile capacity (default: enough for any tile).
+    With `samples`, every per-pixel output is per sample point instead, (N,) or (N, 3).
     """
+    if samples is not None and (cfg.backend != "tiled" or cfg.compositor != "carried"):
+        raise ValueError("sample-point renders need the tiled backend's carried compositor")
     if s.means.shape[0] == 0:
-        return _empty(cam, cfg)
+        return _empty(cam, cfg, samples)
+    if samples is not None:
+        samples = jax.tree_util.tree_map(jnp.asarray, samples)
     grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
     p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
     st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
-                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion)
+                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion,
+                          0 if samples is None else samples.slots)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
-                               _num_chunks(capacity, grid, cfg), cfg.bounds == "tight")
+                               _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",
+                               None if samples is None else samples.boxes)
     if cfg.backend == "dense":
         slots = tile_slots or min(s.means.shape[0], capacity)
         starts = jnp.cumsum(layout.tile_count) - layout.tile_count
@@ -119,12 +132,12 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
         valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
         surfel = layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)]
         if cfg.compositor == "carried":
-            totals, median = carried.composite_carried(st, carried.pair_table(p), surfel, valid,
-                                                       layout.chunk_tile, layout.chunk_first)
+            totals, median = carried.composite_carried(st, carried.pair_table(p), surfel, valid, layout.chunk_tile,
+                                                       layout.chunk_first, None if samples is None else samples.offsets)
         else:
             totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
                                                  layout.chunk_first, cfg.backward)
-    out = _outputs(totals, median, cfg, grid, cam, p, layout, capacity)
+    out = _outputs(totals, median, cfg, grid, cam, p, layout, capacity, samples)
     if cfg.on_overflow == "raise" and isinstance(out.stats.num_pairs, jax.core.Tracer):
         jax.debug.callback(_raise_on_overflow, out.stats.num_pairs, capacity)
     return out
@@ -141,14 +154,15 @@ def _raise_on_overflow(num_pairs, capacity):
 _rasterize_jit = jax.jit(rasterize, static_argnames=("cfg", "capacity", "tile_slots"))
 
 
-def _count_pairs(s: Surfels, cam: Camera, cfg: RasterConfig) -> tuple[jax.Array, jax.Array]:
-    """Exact (total pairs, pairs in the fullest tile), without building the pair list."""
+def _count_pairs(s: Surfels, cam: Camera, cfg: RasterConfig, points: bool = False) -> tuple[jax.Array, jax.Array]:
+    """Exact (total pairs, pairs in the fullest tile), without building the pair list; `points`
+    for a sample-point render."""
     grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
     p = project(s, cam, cfg.near, 0, cfg.lowpass_filter)
-    return binning.count_pairs(p, cam.width, cam.height, grid, cfg.bounds == "tight")
+    return binning.count_pairs(p, cam.width, cam.height, grid, cfg.bounds == "tight", points)
 
 
-count_pairs = jax.jit(_count_pairs, static_argnames=("cfg",))
+count_pairs = jax.jit(_count_pairs, static_argnames=("cfg", "points"))
 
 
 def _is_traced(tree) -> bool:
@@ -156,25 +170,26 @@ def _is_traced(tree) -> bool:
 
 
 def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
-           means2d_probe: jax.Array | None = None) -> RenderOutput:
+           means2d_probe: jax.Array | None = None, samples: PixelSamples | None = None) -> RenderOutput:
     """Render surfels from a camera: rgb, alpha, depths, normals, distortion and binning stats.
 
     Differentiable in every Surfels field; works under jax.jit and jax.vmap (there give
     `cfg.pair_capacity`, or a default guess is used and an overflow raises or is reported
     per `cfg.on_overflow`). Eagerly, the capacity is sized from an exact pair count, so a
     render never loses a pair and recompiles only when a capacity bucket grows.
+    `samples` (`samples.pixel_samples`): render only those image points, (N,) outputs.
     """
     cfg = RasterConfig() if cfg is None else cfg
     s = _as_surfels(s)
-    if _is_traced((s, cam, means2d_probe)):
+    if _is_traced((s, cam, means2d_probe, samples)):
         capacity = cfg.pair_capacity or default_capacity(s.means.shape[0], cam, cfg)
-        return rasterize(s, cam, cfg, capacity, means2d_probe)
+        return rasterize(s, cam, cfg, capacity, means2d_probe, samples=samples)
     if s.means.shape[0] == 0:
-        return _empty(cam, cfg)
-    needed, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg)))
+        return _empty(cam, cfg, samples)
+    needed, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg), samples is not None))
     capacity = capacity_bucket(max(needed, cfg.pair_capacity or 0))
     slots = max(32, 1 << max(fullest - 1, 0).bit_length()) if cfg.backend == "dense" else None
-    out = _rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots)
+    out = _rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots, samples)
     if int(out.stats.overflow):  # the count is exact, so this is a bug: never return a partial image
         raise RasterOverflowError(f"pair count {needed} disagreed with the render ({int(out.stats.num_pairs)})")
     return out

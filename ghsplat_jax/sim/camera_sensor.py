@@ -56,13 +56,14 @@ class CameraModel:
         return messages.camera_info(self.matrix, self.width, self.height, t, self.frame_id)
 
 
-def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25) -> int:
+def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25, points: bool = False) -> int:
     """Pair capacity from an exact count for these views (the rasterizer's cheap binning
-    pass), with headroom for the next poses: the first compilation is usually the only one."""
+    pass), with headroom for the next poses: the first compilation is usually the only one.
+    `points`: the views render sample points (`raster.samples`), not whole images."""
     from ghsplat_jax.raster import capacity_bucket
     from ghsplat_jax.raster.render import _binning_cfg, count_pairs
 
-    needed = max(int(count_pairs(surfels, cam, _binning_cfg(cfg))[0]) for cam in cameras)
+    needed = max(int(count_pairs(surfels, cam, _binning_cfg(cfg), points)[0]) for cam in cameras)
     return capacity_bucket(int(needed * headroom))
 
 
@@ -85,9 +86,9 @@ def sensor_render_fn(render_fn, cfg):
     return lambda surfels, cam: render(surfels, cam, cfg)
 
 
-def initial_capacity(render_fn, surfels, cameras, cfg) -> int:
+def initial_capacity(render_fn, surfels, cameras, cfg, points: bool = False) -> int:
     """First pair capacity: an exact count for the rasterizer; a fixed guess for a fake renderer."""
-    return 1 << 14 if render_fn is not None else counted_capacity(surfels, cameras, cfg)
+    return 1 << 14 if render_fn is not None else counted_capacity(surfels, cameras, cfg, points=points)
 
 
 def grown_capacity(pairs: int) -> int:
