@@ -94,5 +94,9 @@ def test_layouts_group_points_and_reject_bad_ones():
         pixel_samples([[16.5, 1.0]], 16, 16, 8)
     with pytest.raises(ValueError, match="slots"):
         pixel_samples(xy, 16, 16, 8, slots=1)
+    with pytest.raises(ValueError, match="tile size"):
+        gs.render(random_scene(5), camera(16, 16), gs.RasterConfig(tile_size=16), samples=lay)
+    with pytest.raises(ValueError, match="same image size"):
+        stack([lay, pixel_samples(xy, 16, 16, 16)])
     with pytest.raises(ValueError, match="carried"):
         gs.render(random_scene(5), camera(16, 16), gs.RasterConfig(compositor="logspace"), samples=lay)

@@ -107,8 +107,12 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
     `tile_slots` is the dense baseline's per-tile capacity (default: enough for any tile).
     With `samples`, every per-pixel output is per sample point instead, (N,) or (N, 3).
     """
-    if samples is not None and (cfg.backend != "tiled" or cfg.compositor != "carried"):
-        raise ValueError("sample-point renders need the tiled backend's carried compositor")
+    if samples is not None:
+        if cfg.backend != "tiled" or cfg.compositor != "carried":
+            raise ValueError("sample-point renders need the tiled backend's carried compositor")
+        if samples.grid != (cam.width, cam.height, cfg.tile_size):
+            raise ValueError(f"the samples were grouped for (width, height, tile size) {samples.grid}, "
+                             f"the render is {(cam.width, cam.height, cfg.tile_size)}")
     if s.means.shape[0] == 0:
         return _empty(cam, cfg, samples)
     if samples is not None:

@@ -26,6 +26,7 @@ class PixelSamples:
     offsets: np.ndarray   # (T, S, 2) sample x, y relative to its tile's corner; spare slots repeat slot 0
     boxes: np.ndarray     # (T, 4) min x, min y, max x, max y of a tile's samples (empty tile: max < min)
     index: np.ndarray     # (N,) int32 flat slot tile * S + slot of each sample
+    grid: tuple[int, int, int] = dataclasses.field(metadata=dict(static=True))  # image width, height, tile size
 
     @property
     def slots(self) -> int:
@@ -66,12 +67,15 @@ def pixel_samples(xy: np.ndarray, width: int, height: int, tile_size: int, slots
     np.minimum.at(boxes[:, :2], tile, xy)
     np.maximum.at(boxes[:, 2:], tile, xy)
     boxes[counts == 0] = (0.0, 0.0, -1.0, -1.0)
-    return PixelSamples(offsets.astype(np.float32), boxes.astype(np.float32), (tile * slots + slot).astype(np.int32))
+    return PixelSamples(offsets.astype(np.float32), boxes.astype(np.float32), (tile * slots + slot).astype(np.int32),
+                        (width, height, tile_size))
 
 
 def stack(layouts: list[PixelSamples]) -> PixelSamples:
-    """One layout per camera stacked along a new leading axis (same image size and slots);
+    """One layout per camera stacked along a new leading axis (same image size, tiles and slots);
     shorter index lists are padded with slot 0, whose values the caller ignores."""
+    if len({(s.grid, s.slots) for s in layouts}) != 1:
+        raise ValueError("stacked sample layouts need the same image size, tile size and slots")
     n = max(len(s.index) for s in layouts)
     return PixelSamples(np.stack([s.offsets for s in layouts]), np.stack([s.boxes for s in layouts]),
-                        np.stack([np.pad(s.index, (0, n - len(s.index))) for s in layouts]))
+                        np.stack([np.pad(s.index, (0, n - len(s.index))) for s in layouts]), layouts[0].grid)
