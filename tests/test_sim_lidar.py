@@ -130,6 +130,11 @@ def test_sampling_choices_are_checked():
         lidar.Lidar(p, render_fn=box_room_renderer(LO, HI), sampling="beams")
     with pytest.raises(ValueError, match="sampling"):
         lidar.Lidar(p, sampling="rays")
+    # a run trained with the logspace compositor still scans its beams (same image, carried)
+    from ghsplat_jax.raster import RasterConfig
+
+    cfg = lidar.Lidar(p, raster_config=RasterConfig(compositor="logspace", backward="autodiff"))._config()
+    assert (cfg.compositor, cfg.tile_size) == ("carried", lidar.BEAM_TILE_SIZE)
 
 
 @pytest.mark.slow

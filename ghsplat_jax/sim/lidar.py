@@ -221,7 +221,11 @@ class Lidar:
         from ghsplat_jax.sim.camera_sensor import sensor_config
 
         cfg = sensor_config(self._raster_config, self.pair_capacity, median=self.depth_mode == "median")
-        return dataclasses.replace(cfg, tile_size=BEAM_TILE_SIZE) if self.sampling == "beams" else cfg
+        if self.sampling == "faces":
+            return cfg
+        # Sample points need the carried compositor; every compositor renders the same image.
+        return dataclasses.replace(cfg, tile_size=BEAM_TILE_SIZE, compositor="carried", backward="custom_vjp",
+                                   backend="tiled")
 
     def _beam_samples(self):
         """Each face's beams as sample points of its image, and where each (ring, column) beam's
