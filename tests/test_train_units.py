@@ -287,6 +287,17 @@ def test_opacity_reset_recovery_window():
     assert 2 * short.opacity_reset_every >= short.densify_until  # at most one reset in a 300-step run
 
 
+def test_no_opacity_reset_where_the_run_cannot_recover():
+    from ghsplat_jax.train.strategy import is_opacity_reset, last_reset_before
+
+    ends_on_reset = TrainConfig(steps=3000)
+    assert not is_opacity_reset(ends_on_reset, 3000) and last_reset_before(ends_on_reset, 3001) is None
+    late = TrainConfig(steps=6050)    # 50 steps after the reset at 6000: too few to recover
+    assert is_opacity_reset(late, 3000) and not is_opacity_reset(late, 6000)
+    assert last_reset_before(late, 6050) == 3000
+    assert is_opacity_reset(TrainConfig(steps=3100), 3000)
+
+
 def test_inputs_that_predict_a_poor_model_are_warned_about(caplog):
     import dataclasses as dc
     import logging
