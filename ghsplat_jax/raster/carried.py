@@ -236,7 +236,10 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
     # picks a plane per element, which cost more than all the rest of the backward.
     xl, yl = local
     basis = jnp.stack([jnp.ones_like(xl), xl, yl], axis=-1)             # (P, 3), or (B, S, 3) for samples
-    against = (lambda plane: plane @ basis) if basis.ndim == 2 else (lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis))
+    if basis.ndim == 2:
+        against = lambda plane: plane @ basis
+    else:
+        against = lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis)
     s = jnp.stack([against(plane) for plane in (g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter)])  # (7, K, B, 3)
     ox, oy = corner
     total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]

@@ -189,9 +189,10 @@ class Lidar:
 
     `render_fn(surfels, camera)` defaults to the project's rasterizer, sampled at the beams
     (`sampling="beams"`); tests pass an analytic one, whose face images are resampled
-    (`sampling="faces"`, also selectable with the rasterizer). `traces` counts how often the scan function was traced (compiled).
-    `pair_capacity=None` sizes the pair buffer from an exact count of the first scan's
-    faces; an overflow later grows it (one recompilation), never a partial scan.
+    (`sampling="faces"`, also selectable with the rasterizer). `traces` counts how often the
+    scan function was traced (compiled). `pair_capacity=None` sizes the pair buffer from an
+    exact count of the first scan's faces; an overflow later grows it (one recompilation),
+    never a partial scan.
     """
 
     def __init__(self, pattern: BeamPattern, *, face_width: int | None = None, depth: str = "expected",
