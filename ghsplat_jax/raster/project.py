@@ -47,6 +47,12 @@ def _finite_rows(x: jax.Array) -> jax.Array:
     return jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
 
 
+def _times(A: jax.Array, B: jax.Array) -> jax.Array:
+    """A @ B[n] for every n: (3, 3) x (N, 3, k) -> (N, 3, k), written out as three products.
+    As an einsum, XLA:CPU runs 100k of these 3x3 products as a batched dot at about 3 ms."""
+    return sum(A[None, :, j, None] * B[:, None, j, :] for j in range(3))
+
+
 def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter: bool,
             means2d_probe: jax.Array | None = None) -> Projected:
     n = s.means.shape[0]
@@ -63,9 +69,9 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     R_world = quaternions.to_rotation_matrix(quat)                 # columns t_u, t_v, n
     R_wc, t_wc = cam.world_to_cam[:3, :3], cam.world_to_cam[:3, 3]
     mu_c = means @ R_wc.T + t_wc
-    tangents_c = jnp.einsum("ij,njk->nik", R_wc, R_world[:, :, :2]) * scales[:, None, :]
+    tangents_c = _times(R_wc, R_world[:, :, :2]) * scales[:, None, :]
     local = jnp.concatenate([tangents_c, mu_c[:, :, None]], axis=2)  # [s_u t_u | s_v t_v | mu]
-    M = jnp.einsum("ij,njk->nik", cam.K, local)
+    M = _times(cam.K, local)
     depth = mu_c[:, 2]
 
     # Dual conic of u^2 + v^2 = CUTOFF^2: C* = M diag(c^2, c^2, -1) M^T.
