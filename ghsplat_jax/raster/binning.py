@@ -71,11 +71,10 @@ def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid, tight: bo
     else:  # pixel centres j + 0.5 inside the box
         lo, hi, last = jnp.ceil(box_min - 0.5), jnp.floor(box_max - 0.5), size - 1
     hits = p.visible & jnp.all((hi >= 0) & (lo <= last) & (lo <= hi), axis=1)
-    # A point on the image's right or bottom edge belongs to the last tile.
-    last_tile = jnp.array([grid.tiles_x - 1, grid.tiles_y - 1], jnp.int32)
     lo = jnp.clip(lo, 0, last).astype(jnp.int32) // ts
     hi = jnp.clip(hi, 0, last).astype(jnp.int32) // ts
-    if points:
+    if points:  # a point on the image's right or bottom edge belongs to the last tile
+        last_tile = jnp.array([grid.tiles_x - 1, grid.tiles_y - 1], jnp.int32)
         lo, hi = jnp.minimum(lo, last_tile), jnp.minimum(hi, last_tile)
     extent = hi - lo + 1
     counts = jnp.where(hits, extent[:, 0] * extent[:, 1], 0)

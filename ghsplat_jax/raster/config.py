@@ -79,6 +79,8 @@ class RasterStats:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RenderOutput:
+    """Per-pixel outputs (H,W,...), or per sample point (N,...) for a `samples` render."""
+
     rgb: jax.Array           # (H,W,3) over the background
     alpha: jax.Array         # (H,W) accumulated opacity
     depth: jax.Array         # (H,W) expected z-depth sum(w z) / alpha (0 where alpha = 0)
