@@ -81,6 +81,12 @@ def tile_ranges(p: Projected, width: int, height: int, grid: TileGrid, tight: bo
     return lo, hi, counts
 
 
+def cumsum(x: jax.Array, axis: int = 0) -> jax.Array:
+    """Inclusive cumulative sum. jnp.cumsum lowers to a reduce-window that XLA:CPU runs about
+    3x slower than this log-depth scan (9.7 against 3.0 ms for 655k int32, measured)."""
+    return jax.lax.associative_scan(jnp.add, x, axis=axis)
+
+
 def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
     """For each slot in [0, size), the index of the segment (starts, counts) covering it.
 
@@ -88,7 +94,7 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
     scatter-add and a cumulative sum (linear, unlike a binary search per slot).
     """
     hist = jnp.zeros(size + 1, jnp.int32).at[jnp.minimum(starts, size)].add(1)
-    return jnp.cumsum(hist[:size]) - 1
+    return cumsum(hist[:size]) - 1
 
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
@@ -99,7 +105,7 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     lo, hi, counts = tile_ranges(p, width, height, grid, tight, boxes is not None)
     order = stable_argsort(p.depth)
     sorted_counts = counts[order]
-    ends = jnp.cumsum(sorted_counts)
+    ends = cumsum(sorted_counts)
     starts = ends - sorted_counts
     num_pairs = ends[-1] if n else jnp.int32(0)
 
@@ -121,9 +127,9 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n)
 
     tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
-    tile_start = jnp.cumsum(tile_count) - tile_count
+    tile_start = cumsum(tile_count) - tile_count
     chunks = -(-tile_count // chunk_size)
-    chunk_offset = jnp.cumsum(chunks) - chunks
+    chunk_offset = cumsum(chunks) - chunks
     w = jnp.arange(num_chunks, dtype=jnp.int32)
     chunk_tile = jnp.clip(_owner(chunk_offset, chunks, num_chunks), 0, grid.num_tiles - 1)
     used = w < jnp.sum(chunks)
@@ -217,5 +223,5 @@ def count_pairs(p: Projected, width: int, height: int, grid: TileGrid,
     one = hit.astype(jnp.int32)
     diff = (diff.at[lo[:, 1], lo[:, 0]].add(one).at[lo[:, 1], hi[:, 0] + 1].add(-one)
             .at[hi[:, 1] + 1, lo[:, 0]].add(-one).at[hi[:, 1] + 1, hi[:, 0] + 1].add(one))
-    per_tile = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)
+    per_tile = cumsum(cumsum(diff, axis=0), axis=1)
     return jnp.sum(counts), jnp.max(per_tile)

@@ -82,7 +82,7 @@ def _evaluate(f, dx, dy, valid, st: Static):
     oe = g(OPACITY) * e
     keep = (oe >= 1.0 / 255.0) & (z >= st.near) & valid[..., None]
     alpha = jnp.where(keep, jnp.minimum(0.99, oe), 0.0)
-    z = jnp.where(alpha > 0, z, st.near)
+    z = jnp.where(keep, z, st.near)                # keep is alpha > 0
     return alpha, z, (u, v, inv, rho, hit, e, oe)
 
 
@@ -159,18 +159,19 @@ def _num_batches(valid, st: Static):
 
 
 def _pixel_sums(weight, z, f, st: Static):
-    """(B, P, NUM_FEATURES) sums of w f over each chunk; skipped features stay zero."""
-    zero = jnp.zeros(weight.shape[1:])
+    """(B, NUM_FEATURES, P) sums of w f over each chunk, field-major; skipped features stay zero.
+    Written out as a sum over the chunk's pairs of broadcast products, which XLA:CPU fuses into
+    one vectorised loop: as an einsum and reductions over the chunk axis it ran YNN batched dots
+    of (P, K) x (K, 6) blocks and small-axis reductions, 2.5x the cost (and a (B, P, F) result
+    is strided along P)."""
+    cn = f[COLOR_NORMAL][..., None]                                      # (6, K, B, 1)
+    factors = [None, cn[0], cn[1], cn[2], z, cn[3], cn[4], cn[5]]       # A, rgb, z, normal
     if st.distortion:
         m = ndc_depth(z, st)
-        wm = weight * m
-        m1, m2 = jnp.sum(wm, 0), jnp.sum(wm * m, 0)
-    else:
-        m1 = m2 = zero
-    const = jnp.einsum("kbp,kbc->bpc", weight, jnp.moveaxis(f[COLOR_NORMAL], 0, -1))
-    per_pixel = jnp.stack([jnp.sum(weight, 0), jnp.sum(weight * z, 0), m1, m2], axis=-1)   # (B, P, 4)
-    return jnp.concatenate([per_pixel[..., :1], const[..., :3], per_pixel[..., 1:2], const[..., 3:],
-                            per_pixel[..., 2:]], axis=-1)
+        factors += [m, m * m]
+    sums = [sum(weight[k] if x is None else weight[k] * x[k] for k in range(weight.shape[0])) for x in factors]
+    sums += [jnp.zeros_like(sums[0])] * (NUM_FEATURES - len(sums))
+    return jnp.stack(sums, axis=1)
 
 
 def _forward(st: Static, table, surfel, valid, tile, first, offsets):
@@ -191,9 +192,10 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
         return log_t, totals, z_last, selected
 
     median_rows = num_chunks if st.median else 1
-    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, pixels, NUM_FEATURES)), jnp.zeros((median_rows, pixels)),
+    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, NUM_FEATURES, pixels)), jnp.zeros((median_rows, pixels)),
             jnp.full((st.num_tiles, pixels), -1, jnp.int32))
     _, totals, z_last, selected = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+    totals = jnp.swapaxes(totals, 1, 2)                                  # (T, P, F), as every compositor
     median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
     return (totals, median), (totals, selected)
 
@@ -258,9 +260,10 @@ def _bwd(st: Static, residuals, cotangents):
     pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
     g_totals, g_median, selected = pad(g_totals, 0.0), pad(g_median, 0.0), pad(selected, -1)
     g_dot_total = jnp.sum(g_totals * pad(totals, 0.0), axis=-1)          # (T + 1, P)
-    # Field-major, so a batch gathers contiguous (B, P) planes; gathered as (B, P, F), XLA:CPU
-    # reads them with a stride inside every per-pixel fusion (10% of the backward on fern).
-    g_fields = jnp.moveaxis(g_totals, -1, 0)                            # (F, T + 1, P)
+    # Pixels minor, so a batch gathers whole (F, P) rows and every per-pixel fusion reads its
+    # (B, P) planes along P. Gathered as (B, P, F), XLA:CPU reads them with a stride; gathered
+    # from (F, T + 1, P), it transposes them inside every fusion that reads them.
+    g_rows = jnp.swapaxes(g_totals, 1, 2)                               # (T + 1, F, P)
 
     def body(i, state):
         log_t, prefix, d_table = state
@@ -268,20 +271,25 @@ def _bwd(st: Static, residuals, cotangents):
         local = _local_points(offsets, t, st)
         alpha, z, aux = _evaluate(f, *_offsets(corner, local), v, st)
         t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
-        g = g_fields[:, t]                                                # (F, B, P)
-        g_const = jnp.concatenate([g[1:4], g[5:8]], axis=0)               # (6, B, P)
-        # h = g . f for every (pair, pixel): the output change per unit weight.
-        h = g[0] + g[4] * z + jnp.einsum("ckb,cbp->kbp", f[COLOR_NORMAL], g_const)
-        g_z = g[4]
+        g = g_rows[t]                                                     # (B, F, P)
+        plane = lambda c: g[:, c][None]                                   # (1, B, P)
+        const_planes = (1, 2, 3, 5, 6, 7)                                 # rgb and normal
+        # h = g . f for every (pair, pixel): the output change per unit weight. Written out, it
+        # fuses; as an einsum, XLA:CPU ran batched (K, 6) x (6, P) dots and a transpose.
+        h = plane(0) + plane(4) * z + sum(f[COLOR_NORMAL][j][..., None] * plane(c) for j, c in enumerate(const_planes))
+        g_z = plane(4)
         if st.distortion:
             m = ndc_depth(z, st)
-            h = h + (g[8] + g[9] * m) * m
-            g_z = g_z + (g[8] + 2.0 * g[9] * m) * (st.far / (st.far - st.near) * st.near / (z * z))
+            h = h + (plane(8) + plane(9) * m) * m
+            g_z = g_z + (plane(8) + 2.0 * plane(9) * m) * (st.far / (st.far - st.near) * st.near / (z * z))
         wh = weight * h
         within = _cumsum_k(wh)
         before, prefix = _segmented_carry(within[-1], fst, prefix)
         after = g_dot_total[t][None] - (before[None] + within)            # g . S_i
-        d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
+        # One divide last: XLA:CPU keeps an expensive op's result in memory, where it copies a
+        # cheap expression into each of the pullback's seven consumers (gathers and all).
+        one_minus = 1.0 - alpha
+        d_alpha = jnp.where(included, (t_before * h * one_minus - after) / one_minus, 0.0)
         d_z = weight * g_z
         if st.median:
             last, _ = _last_median(included, log_before)
@@ -289,7 +297,8 @@ def _bwd(st: Static, residuals, cotangents):
             median_here = (selected[t] == chunk_id[:, None])[None]
             d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
-        d_const = jnp.einsum("kbp,cbp->kbc", weight, g_const)            # (K, B, 6)
+        g_const = jnp.concatenate([g[:, 1:4], g[:, 5:8]], axis=1)         # (B, 6, P)
+        d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const)            # (K, B, 6)
         d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)
         d_table = d_table.at[_slice(surfel, i, batch)].add(d_rows)         # padding pairs add zeros
         return log_t, prefix, d_table
