@@ -47,6 +47,12 @@ def _finite_rows(x: jax.Array) -> jax.Array:
     return jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
 
 
+def _sum3(x: jax.Array) -> jax.Array:
+    """x[:, 0] + x[:, 1] + x[:, 2] of an (N, 3) product: it fuses with the product, where
+    jnp.sum over the small axis is a YNN reduction of its own (about 1.3 ms at 100k surfels)."""
+    return x[:, 0] + x[:, 1] + x[:, 2]
+
+
 def _times(A: jax.Array, B: jax.Array) -> jax.Array:
     """A @ B[n] for every n: (3, 3) x (N, 3, k) -> (N, 3, k), written out as three products.
     As an einsum, XLA:CPU runs 100k of these 3x3 products as a batched dot at about 3 ms."""
@@ -116,11 +122,11 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
 
     cam_center = cam.center
     view_dir = means - cam_center
-    dir_norm2 = jnp.sum(view_dir**2, axis=1, keepdims=True)
+    dir_norm2 = _sum3(view_dir**2)[:, None]
     dirs = view_dir / jnp.sqrt(jnp.where(dir_norm2 > 0, dir_norm2, 1.0))
     color = sh.evaluate(clean(s.sh_dc), clean(s.sh_rest), dirs, sh_degree)
     normal = R_world[:, :, 2]
-    normal = jnp.where(jnp.sum(normal * view_dir, axis=1, keepdims=True) > 0, -normal, normal)
+    normal = jnp.where(_sum3(normal * view_dir)[:, None] > 0, -normal, normal)
 
     zero_if_hidden = lambda x: jnp.where(visible.reshape((n,) + (1,) * (x.ndim - 1)), x, 0.0)
     return Projected(
@@ -135,12 +141,12 @@ def _ellipse_box(M, cut2, depth):
     """Centre, half-extent and boundedness of the projected ellipse u^2 + v^2 <= cut2 from its
     dual conic C* = M diag(cut2, cut2, -1) M^T."""
     f = jnp.stack([cut2, cut2, -jnp.ones_like(cut2)], axis=1)
-    dist = jnp.sum(f * M[:, 2] ** 2, axis=1)
+    dist = _sum3(f * M[:, 2] ** 2)
     bounded = dist < -1e-12 * jnp.maximum(depth**2, 1e-12)  # ellipse entirely in front of the camera
     safe_dist = jnp.where(bounded, dist, -1.0)
-    center = jnp.stack([jnp.sum(f * M[:, 0] * M[:, 2], 1), jnp.sum(f * M[:, 1] * M[:, 2], 1)], 1)
+    center = jnp.stack([_sum3(f * M[:, 0] * M[:, 2]), _sum3(f * M[:, 1] * M[:, 2])], 1)
     center = center / safe_dist[:, None]
-    diag = jnp.stack([jnp.sum(f * M[:, 0] ** 2, 1), jnp.sum(f * M[:, 1] ** 2, 1)], 1) / safe_dist[:, None]
+    diag = jnp.stack([_sum3(f * M[:, 0] ** 2), _sum3(f * M[:, 1] ** 2)], 1) / safe_dist[:, None]
     half = jnp.sqrt(jnp.maximum(center**2 - diag, 1e-4))
     return center, half, bounded
 
@@ -152,7 +158,7 @@ def _pixel_conic(M, cut2, origin):
     a, b, c0 = jnp.cross(M[:, 1], M[:, 2]), jnp.cross(M[:, 2], M[:, 0]), jnp.cross(M[:, 0], M[:, 1])
     pc = a * origin[:, :1] + b * origin[:, 1:] + c0           # p at the origin
     w = jnp.stack([jnp.ones_like(cut2), jnp.ones_like(cut2), -cut2], axis=1)
-    dot = lambda x, y: jnp.sum(w * x * y, axis=1)
+    dot = lambda x, y: _sum3(w * x * y)
     q = jnp.stack([dot(a, a), dot(a, b), dot(b, b), dot(a, pc), dot(b, pc), dot(pc, pc)], axis=1)
     scale = jnp.max(jnp.abs(q[:, :3]), axis=1, keepdims=True)
     return jax.lax.stop_gradient(q / jnp.where(scale > 0, scale, 1.0))
