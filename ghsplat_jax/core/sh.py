@@ -38,9 +38,7 @@ def evaluate(sh_dc: jnp.ndarray, sh_rest: jnp.ndarray, dirs: jnp.ndarray, degree
     """Colour (..., 3) = SH(dirs) + 0.5, clamped at 0; uses the first `degree` bands only."""
     k = (degree + 1) ** 2
     coeffs = jnp.concatenate([sh_dc[..., None, :], sh_rest[..., : k - 1, :]], axis=-2)
-    # Written out per band: as an einsum, XLA:CPU runs one small dot per surfel.
-    b = basis(dirs, degree)
-    colour = sum(b[..., j, None] * coeffs[..., j, :] for j in range(k))
+    colour = jnp.einsum("...k,...kc->...c", basis(dirs, degree), coeffs)
     return jnp.maximum(colour + 0.5, 0.0)
 
 
