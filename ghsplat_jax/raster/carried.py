@@ -161,9 +161,9 @@ def _num_batches(valid, st: Static):
 def _pixel_sums(weight, z, f, st: Static):
     """(B, NUM_FEATURES, P) sums of w f over each chunk, field-major; skipped features stay zero.
     Written out as a sum over the chunk's pairs of broadcast products, which XLA:CPU fuses into
-    one vectorised loop: as an einsum and reductions over the chunk axis it ran YNN batched dots
-    of (P, K) x (K, 6) blocks and small-axis reductions, 2.5x the cost (and a (B, P, F) result
-    is strided along P)."""
+    one vectorised loop per feature: as an einsum and reductions over the chunk axis it ran YNN
+    batched dots of (P, K) x (K, 6) blocks and small-axis reductions, 2.5x the cost (and a
+    (B, P, F) result is strided along P)."""
     cn = f[COLOR_NORMAL][..., None]                                      # (6, K, B, 1)
     factors = [None, cn[0], cn[1], cn[2], z, cn[3], cn[4], cn[5]]       # A, rgb, z, normal
     if st.distortion:
