@@ -184,7 +184,7 @@ def _conic_terms(p: Projected):
     """Per-surfel terms of the exact tile test, computed once per surfel instead of once per
     pair: the conic's coefficients, the reciprocals of its diagonal, and its minimum's offset
     from the centre and whether that minimum lies inside the ellipse."""
-    qxx, qxy, qyy, qx, qy, q1 = (p.conic[:, i] for i in range(6))
+    qxx, qxy, qyy, qx, qy, _ = (p.conic[:, i] for i in range(6))
     safe = lambda v: jnp.where(v > 0, v, 1.0)
     det = qxx * qyy - qxy * qxy
     mx, my = (qxy * qy - qyy * qx) / safe(det), (qxy * qx - qxx * qy) / safe(det)
@@ -193,6 +193,7 @@ def _conic_terms(p: Projected):
 
 
 def _conic(q, dx, dy):
+    """The normalised conic's value at offset (dx, dy) from the centre; q: its six rows."""
     qxx, qxy, qyy, qx, qy, q1 = q
     return qxx * dx * dx + 2 * qxy * dx * dy + qyy * dy * dy + 2 * qx * dx + 2 * qy * dy + q1
 
@@ -218,7 +219,7 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, tile_xy: tupl
     in_disc = nx * nx + ny * ny <= reach * reach
     conic, inv_xx, inv_yy, mx, my, has_min = (x[..., surfel] for x in _conic_terms(p))
     q = lambda dx, dy: _conic(conic, dx, dy) <= CONIC_TOLERANCE
-    qxx, qxy, qyy, qx, qy, _ = conic
+    _, qxy, _, qx, qy, _ = conic
     # The conic's minimum: inside the rectangle, or on one of its edges (1D minima of a quadratic).
     inside = has_min & (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
     on_edge = jnp.zeros_like(inside)

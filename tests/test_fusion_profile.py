@@ -1,0 +1,52 @@
+"""benchmarks/fusion_profile.py: compiled ops timed from a real profiler trace, traced back to
+their source lines, and the busy-thread count of a trace."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+
+def _fusion_profile():
+    path = Path(__file__).parents[1] / "benchmarks" / "fusion_profile.py"
+    spec = importlib.util.spec_from_file_location("fusion_profile", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(path.parent))  # it imports sim_speed from its folder
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(path.parent))
+    return module
+
+
+def test_ops_are_timed_and_traced_to_their_source(tmp_path):
+    fp = _fusion_profile()
+    f = jax.jit(lambda x: jnp.sort(x) * 2.0 + jnp.exp(x))
+    x = jnp.linspace(1.0, 0.0, 1 << 16)
+    f(x).block_until_ready()
+    with jax.profiler.trace(str(tmp_path)):
+        f(x).block_until_ready()
+    events = fp.op_events(str(tmp_path))
+    assert events and all(end >= start for start, end, _, _ in events)
+    names = {name for *_, name in events}
+    assert any(name.startswith("sort") for name in names), names
+    assert not any("::" in name for name in names)  # runtime bookkeeping is not an op
+    sources = fp.source_of(f.lower(x).compile().as_text())
+    here = Path(__file__).name
+    assert any(loc.startswith(f"{here}:") for name in names for loc in sources.get(name, [])), sources
+
+
+def test_busy_threads_counts_overlapping_ops():
+    fp = _fusion_profile()
+    ms = 1_000_000  # events are in nanoseconds
+    events = [(0, 10 * ms, "a", "x"), (5 * ms, 15 * ms, "b", "y"), (20 * ms, 30 * ms, "a", "z")]
+    busy = fp.busy_threads(events)
+    assert busy == pytest.approx(dict(idle_ms=5.0, one_busy_ms=20.0, two_or_more_busy_ms=5.0))
+
+
+def test_missing_trace_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no profiler trace"):
+        _fusion_profile().op_events(str(tmp_path))
