@@ -55,7 +55,7 @@ def op_events(trace_dir: str) -> list[tuple[int, int, str, str]]:
 def busy_threads(events) -> dict:
     """Milliseconds of the traced span with no, one and two or more threads running ops."""
     edges = sorted([(s, 1) for s, _, _, _ in events] + [(e, -1) for _, e, _, _ in events])
-    busy, running, last = [0, 0, 0], 0, edges[0][0]
+    busy, running, last = [0, 0, 0], 0, edges[0][0] if edges else 0
     for t, step in edges:
         busy[min(running, 2)] += t - last
         running, last = running + step, t

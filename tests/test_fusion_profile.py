@@ -45,6 +45,7 @@ def test_busy_threads_counts_overlapping_ops():
     events = [(0, 10 * ms, "a", "x"), (5 * ms, 15 * ms, "b", "y"), (20 * ms, 30 * ms, "a", "z")]
     busy = fp.busy_threads(events)
     assert busy == pytest.approx(dict(idle_ms=5.0, one_busy_ms=20.0, two_or_more_busy_ms=5.0))
+    assert fp.busy_threads([]) == dict(idle_ms=0.0, one_busy_ms=0.0, two_or_more_busy_ms=0.0)
 
 
 def test_missing_trace_is_a_clear_error(tmp_path):
