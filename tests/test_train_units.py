@@ -53,6 +53,33 @@ def test_ssim_identical_is_one_and_matches_float64_reference(shape):
     assert float(losses.ssim(a, b)) == pytest.approx(ref, abs=2e-4)
 
 
+def test_ssim_gradients_match_autodiff_of_a_plain_convolution():
+    """The blur's hand-written (self-adjoint) gradient, for either image, against autodiff of
+    the same SSIM built on jax.scipy's 2D convolution."""
+    from jax.scipy.signal import convolve2d
+
+    x = np.arange(11) - 5
+    g = np.exp(-(x**2) / (2 * 1.5**2))
+    window = jnp.asarray(np.outer(g, g) / np.sum(g) ** 2, jnp.float32)
+
+    def plain_ssim(a, b):
+        blur = lambda img: jnp.stack([convolve2d(img[..., c], window, mode="same") for c in range(img.shape[-1])], -1)
+        mu_a, mu_b = blur(a), blur(b)
+        va, vb, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+        c1, c2 = 0.01**2, 0.03**2
+        return jnp.mean((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (va + vb + c2)))
+
+    rng = np.random.default_rng(1)
+    a = jnp.asarray(rng.uniform(0, 1, (37, 45, 3)), jnp.float32)  # several blur blocks, cut mid-block
+    b = jnp.asarray(np.clip(a + rng.normal(0, 0.2, a.shape), 0, 1), jnp.float32)
+    got = jax.grad(losses.ssim, argnums=(0, 1))(a, b)
+    want = jax.grad(plain_ssim, argnums=(0, 1))(a, b)
+    for g_got, g_want in zip(got, want):
+        scale = float(jnp.max(jnp.abs(g_want)))
+        assert scale > 0
+        np.testing.assert_allclose(np.asarray(g_got), np.asarray(g_want), atol=2e-3 * scale)
+
+
 def test_psnr_and_l1_known_values():
     a = np.zeros((4, 4, 3), np.float32)
     b = np.full((4, 4, 3), 0.1, np.float32)
@@ -74,6 +101,25 @@ def test_depth_normal_of_a_plane_faces_the_camera():
     assert float(loss) == pytest.approx(1 - interior, abs=1e-4)
     g = jax.grad(lambda d: jnp.sum(losses.depth_to_normal(d, K, w2c)))(jnp.zeros((12, 16)))
     assert np.all(np.isfinite(np.asarray(g)))  # zero depth: double-where keeps gradients finite
+
+
+def test_depth_normal_matches_float64_cross_products_of_back_projected_points():
+    from ghsplat_jax.core.camera import intrinsics, look_at
+
+    K = np.asarray(intrinsics(23, 17), np.float64)
+    K[0, 1] = 0.7  # a skewed camera: every entry of K^-1 matters
+    w2c = np.asarray(look_at([0.4, -2.5, 1.2], [0.1, 0.3, 0.6]), np.float64)
+    depth = np.random.default_rng(2).uniform(1.5, 3.0, (17, 23))
+    jj, ii = np.meshgrid(np.arange(23) + 0.5, np.arange(17) + 0.5)
+    cam = (np.stack([jj, ii, np.ones_like(jj)], -1) @ np.linalg.inv(K).T) * depth[..., None]
+    world = (cam - w2c[:3, 3]) @ w2c[:3, :3]
+    n = np.cross(world[2:, 1:-1] - world[:-2, 1:-1], world[1:-1, 2:] - world[1:-1, :-2])
+    want = np.pad(n / np.linalg.norm(n, axis=-1, keepdims=True), ((1, 1), (1, 1), (0, 0)))
+    got = losses.depth_to_normal(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32),
+                                 jnp.asarray(w2c, jnp.float32))
+    np.testing.assert_allclose(np.asarray(got), want, atol=2e-4)
+    np.testing.assert_allclose(np.asarray(losses.depth_to_points(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32),
+                                                                 jnp.asarray(w2c, jnp.float32))), world, atol=1e-4)
 
 
 # --- schedules and config -----------------------------------------------------------------------
