@@ -242,14 +242,16 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
         against = lambda plane: plane @ basis
     else:
         against = lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis)
-    s = jnp.stack([against(plane) for plane in (g_p0, g_p1, g_p2, g_det, g_opacity, g_depth, g_filter)])  # (7, K, B, 3)
+    s = jnp.stack([against(plane) for plane in (g_p0, g_p1, g_p2, g_filter)])  # (4, K, B, 3)
     ox, oy = corner
     total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]
     d_pc, d_a, d_b = total[:3], sx[:3], sy[:3]
+    # det, opacity and centre depth need only the plain sum over pixels.
+    d_det, d_opacity, d_depth = (jnp.sum(plane, -1) for plane in (g_det, g_opacity, g_depth))
     a, b = f[A], f[B]
-    d_cx = -jnp.sum(a * d_pc, 0) - 4.0 * sx[6]
-    d_cy = -jnp.sum(b * d_pc, 0) - 4.0 * sy[6]
-    return jnp.concatenate([d_pc, d_a, d_b, total[3:4], d_cx[None], d_cy[None], total[4:6]], axis=0)
+    d_cx = -jnp.sum(a * d_pc, 0) - 4.0 * sx[3]
+    d_cy = -jnp.sum(b * d_pc, 0) - 4.0 * sy[3]
+    return jnp.stack([*d_pc, *d_a, *d_b, d_det, d_cx, d_cy, d_opacity, d_depth])
 
 
 def _bwd(st: Static, residuals, cotangents):
