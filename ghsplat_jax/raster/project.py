@@ -87,7 +87,7 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
 
     safe_depth = jnp.where(jnp.abs(depth) > 1e-12, depth, 1.0)
     projected_mean = M[:, :2, 2] / safe_depth[:, None]
-    center = jnp.where(bounded[:, None], center, projected_mean)
+    center = jnp.where(bounded[:, None], center, projected_mean)  # the reference does the same
     # An ellipse that crosses the camera plane projects to an unbounded conic: whole screen.
     big = jnp.float32(1e9)
     box_min = jnp.where(bounded[:, None], center - half, -big)

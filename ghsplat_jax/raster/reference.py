@@ -73,7 +73,14 @@ def render_reference(s: Surfels, cam: Camera, cfg: RasterConfig | None = None) -
     M = np.einsum("ij,njk->nik", K, local)
     f = np.array([9.0, 9.0, -1.0])
     dist = np.sum(f * M[:, 2] ** 2, 1)
-    center = np.stack([np.sum(f * M[:, 0] * M[:, 2], 1), np.sum(f * M[:, 1] * M[:, 2], 1)], 1) / dist[:, None]
+    # The filter centre is the dual-conic centre of the 3-sigma ellipse where that ellipse lies in
+    # front of the camera; one that crosses the camera plane projects to a hyperbola, whose
+    # "centre" can lie anywhere, so there the projected mean is used (as `project` does; 2DGS's
+    # CUDA code takes the hyperbola's centre and a box around it, clipping such a surfel).
+    bounded = dist < -1e-12 * np.maximum(mu_c[:, 2] ** 2, 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dual_center = np.stack([np.sum(f * M[:, 0] * M[:, 2], 1), np.sum(f * M[:, 1] * M[:, 2], 1)], 1) / dist[:, None]
+        center = np.where(bounded[:, None], dual_center, M[:, :2, 2] / M[:, 2, 2:3])
     cam_center = -w2c[:3, :3].T @ w2c[:3, 3]
     view = s.means - cam_center
     color = _sh_color(s, view / np.linalg.norm(view, axis=1, keepdims=True), degree)
