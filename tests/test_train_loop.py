@@ -228,3 +228,46 @@ def test_compiled_step_follows_every_setting_of_its_config():
     assert np.array_equal(out["base"][0], out["same"][0]) and out["base"][1] == out["same"][1]
     assert not np.allclose(out["lr"][0], out["base"][0])      # the learning rate reached the update
     assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
+
+
+def test_compacted_pool_steps_like_the_full_one_and_densification_end_compacts():
+    """state.compact moves each live surfel with its moments and statistics: a step on the
+    compacted pool gives the live surfels the same loss and updates as on the full pool. The
+    default strategy compacts once, when densification ends."""
+    from ghsplat_jax.raster.render import capacity_bucket
+    from ghsplat_jax.train.state import compact, new_state, pad_params
+    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.strategy import make_strategy
+    from ghsplat_jax.train.trainer import step_raster_config
+    from raster_scenes import random_scene
+
+    view = dataset().train[0]
+    image, cam = jnp.asarray(view.image), view.camera
+    params, active = pad_params(random_scene(64, seed=2, degree=1), 256)
+    active[::3] = False  # free slots between live ones, as pruning leaves them
+    active[200:230] = True
+    optimizers, step = make_train_step(CONFIG)
+    full = new_state(params, active, optimizers)
+    full = dataclasses.replace(full, grad_accum=jnp.arange(256.0), max_radii=jnp.arange(256.0) + 0.5)
+    small = compact(full, 128)
+    live = np.flatnonzero(active)
+    assert small.capacity == 128 and int(small.active.sum()) == len(live) and bool(np.all(small.active[:len(live)]))
+    np.testing.assert_array_equal(np.asarray(small.grad_accum[:len(live)]), live)
+    args = (image, cam.K, cam.world_to_cam, jnp.float32(1e-4), step_raster_config(CONFIG, 16384), cam.width,
+            cam.height)
+    (a, ma), (b, mb) = step(full, *args), step(small, *args)
+    assert float(mb["loss"]) == pytest.approx(float(ma["loss"]), rel=1e-6)
+    for x, y in zip(jax.tree_util.tree_leaves((a.params, a.opt_state, a.max_radii)),
+                    jax.tree_util.tree_leaves((b.params, b.opt_state, b.max_radii))):
+        if np.ndim(x):
+            np.testing.assert_allclose(np.asarray(y)[:len(live)], np.asarray(x)[live], rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="do not fit"):
+        compact(full, len(live) - 1)
+
+    big = compact(full, 3 * 4096)  # a spare pool, as growth leaves it
+    strategy = make_strategy(CONFIG)
+    kept, _, _ = strategy.refine(None, big, strategy.init_state(len(live)), CONFIG.densify_until - 3)
+    assert kept.capacity == big.capacity  # densification still running: the pool stays
+    done, _, _ = strategy.refine(None, big, strategy.init_state(len(live)), CONFIG.densify_until)
+    assert done.capacity == capacity_bucket(len(live)) < big.capacity
+    np.testing.assert_array_equal(np.asarray(done.params.means[:len(live)]), np.asarray(full.params.means)[live])

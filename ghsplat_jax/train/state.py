@@ -192,6 +192,27 @@ def grow(state: TrainState, capacity: int) -> TrainState:
     )
 
 
+def compact(state: TrainState, capacity: int) -> TrainState:
+    """The same state in a pool of `capacity` slots, live rows first in their slot order (with
+    their parameters, moments and statistics), then free ones. Every step's per-surfel work
+    (projection, SH, Adam) scales with the pool, so a run whose count has stopped growing
+    sheds its free slots this way."""
+    active = np.asarray(state.active)
+    live, free = np.flatnonzero(active), np.flatnonzero(~active)
+    if capacity < len(live):
+        raise ValueError(f"{len(live)} live surfels do not fit a pool of capacity {capacity}")
+    old = state.capacity
+    rows = jnp.asarray(np.concatenate([live, free])[:min(capacity, old)])
+
+    def take(leaf):
+        if hasattr(leaf, "ndim") and leaf.ndim >= 1 and leaf.shape[0] == old:
+            return leaf[rows]
+        return leaf
+
+    taken = jax.tree_util.tree_map(take, state)
+    return grow(taken, capacity)
+
+
 def render_params(params: Surfels, active: jax.Array, world_to_cam: jax.Array) -> Surfels:
     """Parameters to render: free slots are moved behind the camera (culled before binning,
     so they take no tile pairs) and made transparent; their gradients are zero."""

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from typing import Callable, ClassVar
 
 import jax
@@ -40,8 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
+from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import densify, optim
-from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, grow, render_params
+from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, compact, grow, render_params
 
 log = logging.getLogger("ghsplat.train")
 
@@ -156,6 +158,8 @@ class DefaultStrategy(Strategy):
         c = self.config
         info = {}
         if it >= c.densify_until:
+            if it == c.densify_until:  # the count is final from here on: drop the spare slots
+                state = self._fit_pool(state)
             return state, sstate, info
         white_bg = _white(c)
         if it > c.densify_from and it % c.densify_every == 0:
@@ -182,11 +186,22 @@ class DefaultStrategy(Strategy):
         cap = state.capacity
         if need <= cap * (1.0 - c.capacity_headroom):
             return state
-        new_cap = cap
-        while new_cap * (1.0 - c.capacity_headroom) < need:
-            new_cap *= 2
+        # Pools take the pair buffer's buckets (1, 1.25, 1.5 or 1.75 x 2^k): one compile each, and
+        # at most a fifth of the per-surfel work (projection, SH, Adam) goes to spare slots, where
+        # doubling spent up to half of it.
+        new_cap = capacity_bucket(math.ceil(need / (1.0 - c.capacity_headroom)))
         log.info("surfel pool %d -> %d slots", cap, new_cap)
         return grow(state, new_cap)
+
+    @staticmethod
+    def _fit_pool(state: TrainState) -> TrainState:
+        """The smallest pool bucket that holds the live surfels (a recompile, once)."""
+        n_active = state.num_active()
+        cap = capacity_bucket(n_active)
+        if cap >= state.capacity:
+            return state
+        log.info("densification over: surfel pool %d -> %d slots for %d surfels", state.capacity, cap, n_active)
+        return compact(state, cap)
 
 
 def _capped_pool(config, init, rng) -> tuple[object, int]:
