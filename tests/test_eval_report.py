@@ -49,6 +49,8 @@ def test_table1_and_results_tables(tmp_path):
     time_data = json.loads((tmp_path / "report" / "psnr_vs_time.json").read_text())["series"][""]
     assert [p["x"] for p in time_data] == [r["train_seconds"] for r in rows] == [30000.0, 41000.0, 100.0]
     assert "Gaussians" in table1_markdown(rows)
+    # a table of only non-default runs names their variant (it is not the protocol's row)
+    assert "| seg_a (compact) | 0.0150 |" in table1_markdown([dict(rows[0], variant="compact")])
 
 
 def test_chart_series_split_by_variant_and_drawn_as_given():

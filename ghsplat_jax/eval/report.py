@@ -71,11 +71,12 @@ def csv_text(rows: list[dict], columns) -> str:
 
 
 def table1_rows(rows: list[dict]) -> list[dict]:
-    """Table 1 layout: one row per segment (scene, and variant when there are several)."""
-    variants = {r.get("variant") for r in rows}
+    """Table 1 layout: one row per segment (scene, and variant unless every row is the default
+    variant: a table holding only the compact runs must say so)."""
+    plain = {r.get("variant") for r in rows} <= {"default", "", None}
     out = []
     for r in rows:
-        seg = r["scene"] if len(variants) <= 1 else f"{r['scene']} ({r['variant']})"
+        seg = r["scene"] if plain else f"{r['scene']} ({r['variant']})"
         out.append({"segment": seg, "l1": r["l1"], "psnr": r["psnr"], "num_gaussians": r["num_gaussians"],
                     "split": r["split"], "steps": r["steps"]})
     return out
