@@ -186,9 +186,9 @@ class DefaultStrategy(Strategy):
         cap = state.capacity
         if need <= cap * (1.0 - c.capacity_headroom):
             return state
-        # Pools take the pair buffer's buckets (1, 1.25, 1.5 or 1.75 x 2^k): one compile each, and
-        # at most a fifth of the per-surfel work (projection, SH, Adam) goes to spare slots, where
-        # doubling spent up to half of it.
+        # Pools take the pair buffer's buckets (1, 1.25, 1.5 or 1.75 x 2^k): one compile each, and a
+        # pool at most 1.25x what it must hold, where doubling left up to half of the per-surfel
+        # work (projection, SH, Adam) to spare slots.
         new_cap = capacity_bucket(math.ceil(need / (1.0 - c.capacity_headroom)))
         log.info("surfel pool %d -> %d slots", cap, new_cap)
         return grow(state, new_cap)
