@@ -2,11 +2,15 @@
 
     python benchmarks/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
     python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
+    python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
 "previous" variant is the rasterizer as it trained before this change: the two-pass logspace
-compositor, 3-sigma boxes, every output computed, 16-chunk batches. The same process also measures
+compositor, 3-sigma boxes, every output computed, 16-chunk batches. With `--compare pool` both
+variants use the current rasterizer and "previous" keeps the checkpoint's surfel pool as it grew
+(doubling, before pool buckets), while "current" is compacted to the smallest pool bucket that
+holds the live surfels, as the default strategy now does. The same process also measures
 the machine's fused exp rate, so throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
@@ -31,9 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
 from ghsplat_jax.train.run_dir import load_training_data
+from ghsplat_jax.train.state import compact
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
 RESULTS = Path(__file__).parent / "results"
@@ -42,22 +48,25 @@ SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
 PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
 
 
-def _session(config: TrainConfig, dataset, checkpoint: Path | None):
+def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
     session = trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
     if checkpoint is not None:
         session._restore(checkpoint)
+    if transform is not None:
+        session.state = transform(session.state)
     state0 = session.state
     session.step(int(state0.step))  # compile
     session.state = state0
     return session
 
 
-def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int) -> dict:
+def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int, transforms=None) -> dict:
     """Median wall and CPU seconds per training step for each config, from the same checkpoint
-    (or step 0; or {name: checkpoint}, one per config), the configs' steps interleaved
-    (A, B, A, B, ...) so drifting load hits them alike."""
+    (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(state)} applied
+    after loading), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike."""
     checkpoints = checkpoint if isinstance(checkpoint, dict) else dict.fromkeys(configs, checkpoint)
-    sessions = {name: _session(cfg, dataset, checkpoints[name]) for name, cfg in configs.items()}
+    transforms = transforms or {}
+    sessions = {name: _session(cfg, dataset, checkpoints[name], transforms.get(name)) for name, cfg in configs.items()}
     starts = {name: int(session.state.step) for name, session in sessions.items()}
     samples = {name: [] for name in sessions}
     for k in range(steps):
@@ -83,18 +92,27 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", help="start from this training checkpoint (else from initialisation)")
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
+    ap.add_argument("--compare", choices=("raster", "pool"), default="raster",
+                    help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
+                         "against the same state compacted to its live surfels")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
     dataset = load_training_data(config)
     checkpoint = Path(args.checkpoint) if args.checkpoint else None
-    variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
-    rows = time_steps(variants, dataset, checkpoint, args.steps)
+    transforms, previous = {}, PREVIOUS
+    if args.compare == "pool":
+        variants = {"previous": config, "current": config}
+        transforms = {"current": lambda st: compact(st, capacity_bucket(st.num_active()))}
+        previous = "the checkpoint's surfel pool as it grew"
+    else:
+        variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
+    rows = time_steps(variants, dataset, checkpoint, args.steps, transforms)
     window = dict(rows=rows, speedup=rows["previous"]["seconds_per_step"] / rows["current"]["seconds_per_step"],
                   cpu_speedup=rows["previous"]["cpu_seconds_per_step"] / rows["current"]["cpu_seconds_per_step"],
                   exp_rate_per_s=exp_rate(), peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   image=[dataset.train[0].camera.width, dataset.train[0].camera.height], steps_timed=args.steps,
-                  previous_settings=PREVIOUS, current_settings=dataclasses.asdict(config.raster))
+                  compare=args.compare, previous_settings=previous, current_settings=dataclasses.asdict(config.raster))
     label = args.label or f"{Path(config.data).name}@{rows['current']['step']}"
     path = RESULTS / "train_speed.json"
     results = json.loads(path.read_text()) if path.is_file() else {}
@@ -118,7 +136,7 @@ def chart(windows: dict, path: Path) -> None:
     ax.set_xticks(x, [textwrap.fill(k, 30) + f"\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels],
                   fontsize=8)
     ax.set_ylabel("seconds per training step (median)")
-    ax.set_title("Training step on a 2-core CPU: previous vs current rasterizer")
+    ax.set_title("Training step on a 2-core CPU: previous vs current (rasterizer, or surfel pool)")
     ax.legend()
     fig.tight_layout()
     save_figure(fig, path)
