@@ -127,14 +127,14 @@ def main(argv=None) -> int:
 def chart(windows: dict, path: Path) -> None:
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(7, 4))
-    ax = fig.add_subplot()
     labels = list(windows)
+    fig = Figure(figsize=(max(7.0, 2.0 * len(labels)), 4.5))
+    ax = fig.add_subplot()
     x = np.arange(len(labels))
     for i, name in enumerate(("previous", "current")):
         ax.bar(x + (i - 0.5) * 0.38, [windows[k]["rows"][name]["seconds_per_step"] for k in labels], 0.38, label=name)
-    ax.set_xticks(x, [textwrap.fill(k, 30) + f"\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels],
-                  fontsize=8)
+    ax.set_xticks(x, [textwrap.fill(k, 24) + f"\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels],
+                  fontsize=7)
     ax.set_ylabel("seconds per training step (median)")
     ax.set_title("Training step on a 2-core CPU: previous vs current (rasterizer, or surfel pool)")
     ax.legend()
