@@ -158,8 +158,8 @@ class DefaultStrategy(Strategy):
         c = self.config
         info = {}
         if it >= c.densify_until:
-            if it == c.densify_until:  # the count is final from here on: drop the spare slots
-                state = self._fit_pool(state)
+            if it % c.densify_every == 0:  # the count no longer grows: drop the spare slots (checked
+                state = self._fit_pool(state)  # each round, so a rolled-back step or a resume cannot skip it)
             return state, sstate, info
         white_bg = _white(c)
         if it > c.densify_from and it % c.densify_every == 0:
@@ -195,7 +195,7 @@ class DefaultStrategy(Strategy):
 
     @staticmethod
     def _fit_pool(state: TrainState) -> TrainState:
-        """The smallest pool bucket that holds the live surfels (a recompile, once)."""
+        """The smallest pool bucket that holds the live surfels (a recompile when it shrinks)."""
         n_active = state.num_active()
         cap = capacity_bucket(n_active)
         if cap >= state.capacity:
