@@ -155,6 +155,8 @@ def test_config_overrides_save_and_errors(tmp_path):
         apply_overrides(cfg, {"strategy": "nonesuch"})
     with pytest.raises(ConfigError, match="integer"):
         apply_overrides(cfg, {"steps": "many"})
+    with pytest.raises(ConfigError, match="densify_every must be >= 1.*densify_until = 0"):
+        apply_overrides(cfg, {"densify_every": 0})
     short = TrainConfig(steps=3000, scale_schedule=True).resolved()
     assert (short.densify_from, short.densify_until, short.densify_every, short.opacity_reset_every) == (50, 1500, 10,
                                                                                                         300)

@@ -158,6 +158,9 @@ class TrainConfig:
             raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
             raise ConfigError(f"steps must be >= 0, got {self.steps}")
+        if self.densify_every < 1:
+            raise ConfigError(f"densify_every must be >= 1 (refinement rounds run every this many steps; set "
+                              f"densify_until = 0 to turn densification off), got {self.densify_every}")
         if self.lr_means_steps < 0:
             raise ConfigError(f"lr_means_steps must be >= 0, got {self.lr_means_steps}")
         if not 0 <= self.sh_degree <= 3:
