@@ -35,11 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.io_utils import save_figure, write_json
-from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
 from ghsplat_jax.train.run_dir import load_training_data
-from ghsplat_jax.train.state import compact
+from ghsplat_jax.train.state import fit_pool
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
 RESULTS = Path(__file__).parent / "results"
@@ -103,7 +102,7 @@ def main(argv=None) -> int:
     transforms, previous = {}, PREVIOUS
     if args.compare == "pool":
         variants = {"previous": config, "current": config}
-        transforms = {"current": lambda st: compact(st, capacity_bucket(st.num_active()))}
+        transforms = {"current": fit_pool}
         previous = "the checkpoint's surfel pool as it grew"
     else:
         variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.core.surfels import Surfels
+from ghsplat_jax.raster.render import capacity_bucket
 
 INACTIVE_LOGIT = -20.0  # sigmoid ~ 2e-9: an empty slot is invisible even if it were drawn
 
@@ -167,6 +168,16 @@ def new_state(params: Surfels, active, optimizers: dict) -> TrainState:
     )
 
 
+def _map_rows(tree, capacity: int, fn):
+    """fn applied to every leaf with one row per pool slot (leading axis `capacity`); other
+    leaves (the step, Adam's counts) pass through."""
+    def one(leaf):
+        if hasattr(leaf, "ndim") and leaf.ndim >= 1 and leaf.shape[0] == capacity:
+            return fn(leaf)
+        return leaf
+    return jax.tree_util.tree_map(one, tree)
+
+
 def grow(state: TrainState, capacity: int) -> TrainState:
     """The same state in a larger pool (new slots empty, zero statistics and moments)."""
     old = state.capacity
@@ -175,21 +186,8 @@ def grow(state: TrainState, capacity: int) -> TrainState:
     extra = capacity - old
     empty = empty_params(extra, state.params.sh_degree)
     params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, jnp.asarray(b)], 0), state.params, empty)
-
-    def pad_rows(leaf):
-        if hasattr(leaf, "ndim") and leaf.ndim >= 1 and leaf.shape[0] == old:
-            return jnp.concatenate([leaf, jnp.zeros((extra,) + leaf.shape[1:], leaf.dtype)], 0)
-        return leaf
-
-    return TrainState(
-        params=params,
-        active=pad_rows(state.active),
-        opt_state=jax.tree_util.tree_map(pad_rows, state.opt_state),
-        grad_accum=pad_rows(state.grad_accum),
-        grad_count=pad_rows(state.grad_count),
-        max_radii=pad_rows(state.max_radii),
-        step=state.step,
-    )
+    zeros = lambda leaf: jnp.concatenate([leaf, jnp.zeros((extra,) + leaf.shape[1:], leaf.dtype)], 0)  # noqa: E731
+    return dataclasses.replace(_map_rows(dataclasses.replace(state, params=None), old, zeros), params=params)
 
 
 def compact(state: TrainState, capacity: int) -> TrainState:
@@ -201,16 +199,15 @@ def compact(state: TrainState, capacity: int) -> TrainState:
     live, free = np.flatnonzero(active), np.flatnonzero(~active)
     if capacity < len(live):
         raise ValueError(f"{len(live)} live surfels do not fit a pool of capacity {capacity}")
-    old = state.capacity
-    rows = jnp.asarray(np.concatenate([live, free])[:min(capacity, old)])
+    rows = jnp.asarray(np.concatenate([live, free])[:min(capacity, state.capacity)])
+    return grow(_map_rows(state, state.capacity, lambda leaf: leaf[rows]), capacity)
 
-    def take(leaf):
-        if hasattr(leaf, "ndim") and leaf.ndim >= 1 and leaf.shape[0] == old:
-            return leaf[rows]
-        return leaf
 
-    taken = jax.tree_util.tree_map(take, state)
-    return grow(taken, capacity)
+def fit_pool(state: TrainState) -> TrainState:
+    """`state` compacted to the smallest pool bucket that holds its live surfels (the pair
+    buffer's buckets, 1-1.75 x 2^k), or itself where that bucket is no smaller."""
+    cap = capacity_bucket(state.num_active())
+    return compact(state, cap) if cap < state.capacity else state
 
 
 def render_params(params: Surfels, active: jax.Array, world_to_cam: jax.Array) -> Surfels:

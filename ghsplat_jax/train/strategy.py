@@ -43,7 +43,7 @@ import numpy as np
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import densify, optim
-from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, compact, grow, render_params
+from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, fit_pool, grow, render_params
 
 log = logging.getLogger("ghsplat.train")
 
@@ -195,13 +195,11 @@ class DefaultStrategy(Strategy):
 
     @staticmethod
     def _fit_pool(state: TrainState) -> TrainState:
-        """The smallest pool bucket that holds the live surfels (a recompile when it shrinks)."""
-        n_active = state.num_active()
-        cap = capacity_bucket(n_active)
-        if cap >= state.capacity:
-            return state
-        log.info("densification over: surfel pool %d -> %d slots for %d surfels", state.capacity, cap, n_active)
-        return compact(state, cap)
+        """The pool fitted to the live surfels (a recompile when it shrinks)."""
+        fitted = fit_pool(state)
+        if fitted.capacity < state.capacity:
+            log.info("densification over: surfel pool %d -> %d slots", state.capacity, fitted.capacity)
+        return fitted
 
 
 def _capped_pool(config, init, rng) -> tuple[object, int]:
