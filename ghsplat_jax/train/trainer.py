@@ -12,6 +12,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -252,6 +253,14 @@ class _Session:
         return m
 
 
+def _sync(fh) -> None:
+    """Put every logged step on disk before a checkpoint is written: a resume keeps the log's
+    lines up to the checkpoint's step, so a log that lagged its checkpoint (lines still in the
+    buffer when the process was killed) would lose those steps for good."""
+    fh.flush()
+    os.fsync(fh.fileno())
+
+
 def _truncate_stats(path: Path, last_step: int) -> None:
     from ghsplat_jax.io_utils import atomic_write
 
@@ -329,9 +338,10 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
                     bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
                     last_t, last_step = now, step
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
+                    _sync(stats)
                     session.save(seconds())
         except KeyboardInterrupt:
-            stats.flush()
+            _sync(stats)
             session.save(seconds())
             log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
                         out / CHECKPOINT_NAME)
