@@ -54,7 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="exit with status 3 when fewer images than this fraction register")
     g.add_argument("--no-undistort", action="store_true",
                    help="skip undistortion (OUT/images, OUT/sparse/0 are then not written)")
-    g.add_argument("--threads", type=int, default=-1, help="CPU threads (-1: all)")
+    g.add_argument("--threads", type=int, default=1,
+                   help="CPU threads; 1 (default) repeats exactly, -1 uses all cores (faster, but the "
+                        "model can differ from run to run)")
     g.add_argument("--seed", type=int, default=0, help="random seed for repeatable runs")
 
     d = parser.add_argument_group("self-similar rows (disambiguation and fold checks)")
