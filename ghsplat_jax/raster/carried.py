@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.raster.binning import tile_corner
-from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Static, local_pixels,
+from ghsplat_jax.raster.composite import (LOG_T_FLOOR, M1, NUM_FEATURES, T_MIN, Static, local_pixels,
                                           ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
 
@@ -159,7 +159,7 @@ def _num_batches(valid, st: Static):
 
 
 def _pixel_sums(weight, z, f, st: Static):
-    """(B, NUM_FEATURES, P) sums of w f over each chunk, field-major; skipped features stay zero.
+    """(B, _num_sums(st), P) sums of w f over each chunk, field-major.
     Written out as a sum over the chunk's pairs of broadcast products, which XLA:CPU fuses into
     one vectorised loop per feature: as an einsum and reductions over the chunk axis it ran YNN
     batched dots of (P, K) x (K, 6) blocks and small-axis reductions, 2.5x the cost (and a
@@ -170,8 +170,13 @@ def _pixel_sums(weight, z, f, st: Static):
         m = ndc_depth(z, st)
         factors += [m, m * m]
     sums = [sum(weight[k] if x is None else weight[k] * x[k] for k in range(weight.shape[0])) for x in factors]
-    sums += [jnp.zeros_like(sums[0])] * (NUM_FEATURES - len(sums))
     return jnp.stack(sums, axis=1)
+
+
+def _num_sums(st: Static) -> int:
+    """Features the forward loop sums: the distortion moments only when they are read (the
+    rest of NUM_FEATURES is zero-filled after the loop, not scattered batch by batch)."""
+    return NUM_FEATURES if st.distortion else M1
 
 
 def _forward(st: Static, table, surfel, valid, tile, first, offsets):
@@ -192,10 +197,10 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
         return log_t, totals, z_last, selected
 
     median_rows = num_chunks if st.median else 1
-    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, NUM_FEATURES, pixels)), jnp.zeros((median_rows, pixels)),
+    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, _num_sums(st), pixels)), jnp.zeros((median_rows, pixels)),
             jnp.full((st.num_tiles, pixels), -1, jnp.int32))
     _, totals, z_last, selected = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
-    totals = jnp.swapaxes(totals, 1, 2)                                  # (T, P, F), as every compositor
+    totals = jnp.pad(jnp.swapaxes(totals, 1, 2), ((0, 0), (0, 0), (0, NUM_FEATURES - _num_sums(st))))  # (T, P, F)
     median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
     return (totals, median), (totals, selected)
 
