@@ -151,14 +151,45 @@ def _sortable_bits(x: jax.Array) -> jax.Array:
     return jnp.where(b >> 31 == 1, ~b, b | np.uint32(1 << 31))
 
 
+def _host_sorts() -> bool:
+    """Whether to sort on the host with NumPy: on a CPU backend its SIMD sort is about 16x
+    faster than XLA:CPU's (2 ms against 33 ms for 655k uint32 keys, measured), and the data is
+    already in host memory. Elsewhere the device sorts."""
+    return jax.default_backend() == "cpu"
+
+
+def _host_sort(x) -> np.ndarray:
+    return np.sort(np.asarray(x), axis=-1)
+
+
+def _host_stable_argsort(key) -> np.ndarray:
+    """Stable argsort of uint32 keys along the last axis: one sort of (key, position) packed
+    into uint64 (positions are unique, so any sort is stable)."""
+    key = np.asarray(key)
+    n = key.shape[-1]
+    bits = max((n - 1).bit_length(), 1)
+    packed = (key.astype(np.uint64) << np.uint64(bits)) | np.arange(n, dtype=np.uint64)
+    return (np.sort(packed, axis=-1) & np.uint64((1 << bits) - 1)).astype(np.int32)
+
+
+def sort_unsigned(x: jax.Array) -> jax.Array:
+    """Ascending sort of unsigned integer keys (no gradient: they are integers)."""
+    if not _host_sorts():
+        return jnp.sort(x)
+    return jax.pure_callback(_host_sort, jax.ShapeDtypeStruct(x.shape, x.dtype), x, vmap_method="broadcast_all")
+
+
 def stable_argsort(x: jax.Array) -> jax.Array:
-    """jnp.argsort(x, stable=True) of a float vector, as an LSD radix sort whose passes are
-    single-operand uint32 sorts of (digit, position): XLA:CPU sorts one uint32 operand about 7x
-    faster than a (key, index) pair, so this takes 10 ms instead of 26 ms for 94k depths."""
+    """jnp.argsort(x, stable=True) of a float vector. On the host, one NumPy sort; elsewhere an
+    LSD radix sort whose passes are single-operand uint32 sorts of (digit, position): XLA:CPU
+    sorts one uint32 operand about 7x faster than a (key, index) pair."""
     n = x.shape[0]
+    key = _sortable_bits(x)
+    if _host_sorts():
+        return jax.pure_callback(_host_stable_argsort, jax.ShapeDtypeStruct(x.shape, jnp.int32), key,
+                                 vmap_method="broadcast_all")
     index_bits = max((n - 1).bit_length(), 1)
     digit_bits = 32 - index_bits
-    key = _sortable_bits(x)
     position = jnp.arange(n, dtype=jnp.uint32)
     order = jnp.arange(n, dtype=jnp.int32)
     for shift in range(0, 32, digit_bits):
@@ -175,7 +206,7 @@ def _tile_major(tile, owner, order, num_tiles: int, n: int):
     tile. Where (tile, owner) packs into one uint32 the sort has a single operand, which XLA:CPU
     sorts about 8x faster than a (key, payload) pair (measured on 600k pairs)."""
     if (num_tiles + 1) * max(n, 1) <= PACKED_KEYS_MAX:
-        key = jnp.sort(tile.astype(jnp.uint32) * np.uint32(n) + owner.astype(jnp.uint32))
+        key = sort_unsigned(tile.astype(jnp.uint32) * np.uint32(n) + owner.astype(jnp.uint32))
         return (key // np.uint32(n)).astype(jnp.int32), order[(key % np.uint32(n)).astype(jnp.int32)]
     return jax.lax.sort((tile, order[owner]), num_keys=1, is_stable=True)
 
