@@ -87,45 +87,50 @@ def test_packed_tile_sort_matches_the_two_key_sort(monkeypatch):
 @settings(max_examples=30, deadline=None)
 @given(arrays(np.float32, st.sampled_from([0, 1, 2, 37, 300]), elements=st.one_of(
     st.floats(-1e3, 1e3, width=32), st.sampled_from([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-40, 2.5]))))
-def test_radix_depth_order_is_the_stable_argsort(depths):
+@pytest.mark.parametrize("host", [True, False])
+def test_radix_depth_order_is_the_stable_argsort(host, depths):
     """The depth order the pairs are generated in equals the stable argsort it replaces: ties,
     signed zeros, infinities, NaNs and denormals (which XLA:CPU compares as zero) included."""
     x = jnp.asarray(depths)
-    np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x)), np.asarray(jnp.argsort(x, stable=True)))
-
-
-def test_radix_depth_order_with_three_passes():
-    """Above 65,536 surfels each pass sorts a 15-bit digit: three passes, still the stable order."""
-    x = jnp.asarray(np.random.default_rng(0).integers(0, 500, 70001).astype(np.float32) / 7)  # many ties
-    np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x)), np.asarray(jnp.argsort(x, stable=True)))
+    np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x, host)), np.asarray(jnp.argsort(x, stable=True)))
 
 
 @pytest.mark.parametrize("host", [True, False])
-def test_depth_order_is_a_stable_argsort_on_the_host_and_on_the_device(monkeypatch, host):
-    """NumPy's sort on a CPU backend and the radix passes elsewhere give jnp.argsort's stable
-    order: ties by index, -0 as 0, NaN last; also under vmap."""
+def test_radix_depth_order_with_three_passes(host):
+    """Above 65,536 surfels each pass sorts a 15-bit digit: three passes, still the stable order."""
+    x = jnp.asarray(np.random.default_rng(0).integers(0, 500, 70001).astype(np.float32) / 7)  # many ties
+    np.testing.assert_array_equal(np.asarray(binning.stable_argsort(x, host)), np.asarray(jnp.argsort(x, stable=True)))
+
+
+@pytest.mark.parametrize("host", [True, False])
+def test_depth_order_is_a_stable_argsort_on_the_host_and_on_the_device(host):
+    """NumPy's sort through a host callback and XLA's radix passes both give jnp.argsort's
+    stable order: ties by index, -0 as 0, NaN last; also under vmap."""
+    import functools
+
     import jax
 
-    monkeypatch.setattr(binning, "_host_sorts", lambda: host)
     r = np.random.default_rng(1)
     x = np.round(r.normal(size=3001), 1).astype(np.float32)  # many ties
     x[[5, 9]], x[7], x[11] = np.nan, -0.0, 0.0
     x = jnp.asarray(x)
-    np.testing.assert_array_equal(jax.jit(binning.stable_argsort)(x), jnp.argsort(x, stable=True))
+    argsort = functools.partial(binning.stable_argsort, host=host)
+    np.testing.assert_array_equal(jax.jit(argsort)(x), jnp.argsort(x, stable=True))
     both = jnp.stack([x, x[::-1]])
-    np.testing.assert_array_equal(jax.vmap(binning.stable_argsort)(both), jnp.argsort(both, axis=1, stable=True))
+    np.testing.assert_array_equal(jax.vmap(argsort)(both), jnp.argsort(both, axis=1, stable=True))
     keys = jnp.asarray(r.integers(0, 2**32, 4097, dtype=np.uint32))
-    np.testing.assert_array_equal(jax.jit(binning.sort_unsigned)(keys), np.sort(np.asarray(keys)))
+    np.testing.assert_array_equal(jax.jit(functools.partial(binning.sort_unsigned, host=host))(keys),
+                                  np.sort(np.asarray(keys)))
 
 
-def test_host_and_device_sorts_bin_the_same_pairs(monkeypatch):
+def test_host_and_device_sorts_bin_the_same_pairs():
     s, cam = mixed_scene(seed=3), camera(80, 56)
     p = project(s, cam, 0.2, 1, True)
     grid = binning.TileGrid.for_image(80, 56, 8)
-    layouts = []
-    for host in (True, False):
-        monkeypatch.setattr(binning, "_host_sorts", lambda: host)
-        layouts.append(binning.bin_pairs(p, 80, 56, grid, 4096, 16, 512))
+    layouts = [binning.bin_pairs(p, 80, 56, grid, 4096, 16, 512, host_sort=host) for host in (True, False)]
     for field in ("pair_surfel", "chunk_tile", "chunk_start", "chunk_count", "tile_count", "num_kept"):
         np.testing.assert_array_equal(getattr(layouts[0], field), getattr(layouts[1], field), err_msg=field)
     assert int(layouts[0].num_kept) > 0
+    assert binning.host_sorts("xla") is False
+    with pytest.raises(ValueError, match="sort"):
+        gs.RasterConfig(sort="numpy")

@@ -98,12 +98,14 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
 
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
-              chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | None = None) -> Layout:
+              chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | None = None,
+              host_sort: bool = False) -> Layout:
     """`boxes` (T, 4): render only points inside these per-tile boxes (`samples.PixelSamples`):
-    tiles with an empty box get no pairs, and the exact test uses the box, not the tile."""
+    tiles with an empty box get no pairs, and the exact test uses the box, not the tile.
+    `host_sort`: sort with NumPy on the host (`host_sorts`)."""
     n = p.depth.shape[0]
     lo, hi, counts = tile_ranges(p, width, height, grid, tight, boxes is not None)
-    order = stable_argsort(p.depth)
+    order = stable_argsort(p.depth, host_sort)
     sorted_counts = counts[order]
     ends = cumsum(sorted_counts)
     starts = ends - sorted_counts
@@ -125,7 +127,7 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     if tight:
         keep &= tile_touched(p, surfel, tile, tile_xy, grid, boxes)
     tile = jnp.where(keep, tile, grid.num_tiles)
-    tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n)
+    tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n, host_sort)
 
     tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
     tile_start = cumsum(tile_count) - tile_count
@@ -151,11 +153,11 @@ def _sortable_bits(x: jax.Array) -> jax.Array:
     return jnp.where(b >> 31 == 1, ~b, b | np.uint32(1 << 31))
 
 
-def _host_sorts() -> bool:
-    """Whether to sort on the host with NumPy: on a CPU backend its SIMD sort is about 16x
-    faster than XLA:CPU's (2 ms against 33 ms for 655k uint32 keys, measured), and the data is
-    already in host memory. Elsewhere the device sorts."""
-    return jax.default_backend() == "cpu"
+def host_sorts(mode: str) -> bool:
+    """Whether to sort on the host with NumPy (`RasterConfig.sort`): "auto" does on a CPU
+    backend, where NumPy's SIMD sort is about 16x faster than XLA:CPU's (2 ms against 33 ms for
+    655k uint32 keys, measured) and the data is already in host memory; "xla" never does."""
+    return mode == "auto" and jax.default_backend() == "cpu"
 
 
 def _host_sort(x) -> np.ndarray:
@@ -172,20 +174,20 @@ def _host_stable_argsort(key) -> np.ndarray:
     return (np.sort(packed, axis=-1) & np.uint64((1 << bits) - 1)).astype(np.int32)
 
 
-def sort_unsigned(x: jax.Array) -> jax.Array:
+def sort_unsigned(x: jax.Array, host: bool) -> jax.Array:
     """Ascending sort of unsigned integer keys (no gradient: they are integers)."""
-    if not _host_sorts():
+    if not host:
         return jnp.sort(x)
     return jax.pure_callback(_host_sort, jax.ShapeDtypeStruct(x.shape, x.dtype), x, vmap_method="broadcast_all")
 
 
-def stable_argsort(x: jax.Array) -> jax.Array:
+def stable_argsort(x: jax.Array, host: bool) -> jax.Array:
     """jnp.argsort(x, stable=True) of a float vector. On the host, one NumPy sort; elsewhere an
     LSD radix sort whose passes are single-operand uint32 sorts of (digit, position): XLA:CPU
     sorts one uint32 operand about 7x faster than a (key, index) pair."""
     n = x.shape[0]
     key = _sortable_bits(x)
-    if _host_sorts():
+    if host:
         return jax.pure_callback(_host_stable_argsort, jax.ShapeDtypeStruct(x.shape, jnp.int32), key,
                                  vmap_method="broadcast_all")
     index_bits = max((n - 1).bit_length(), 1)
@@ -199,14 +201,14 @@ def stable_argsort(x: jax.Array) -> jax.Array:
     return order
 
 
-def _tile_major(tile, owner, order, num_tiles: int, n: int):
+def _tile_major(tile, owner, order, num_tiles: int, n: int, host: bool):
     """Pairs sorted by tile, front to back within a tile: (tile, surfel) of each.
 
     Slots are in depth order (by `owner`, the surfel's depth rank), so this is a stable sort by
     tile. Where (tile, owner) packs into one uint32 the sort has a single operand, which XLA:CPU
     sorts about 8x faster than a (key, payload) pair (measured on 600k pairs)."""
     if (num_tiles + 1) * max(n, 1) <= PACKED_KEYS_MAX:
-        key = sort_unsigned(tile.astype(jnp.uint32) * np.uint32(n) + owner.astype(jnp.uint32))
+        key = sort_unsigned(tile.astype(jnp.uint32) * np.uint32(n) + owner.astype(jnp.uint32), host)
         return (key // np.uint32(n)).astype(jnp.int32), order[(key % np.uint32(n)).astype(jnp.int32)]
     return jax.lax.sort((tile, order[owner]), num_keys=1, is_stable=True)
 
