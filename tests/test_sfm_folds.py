@@ -7,6 +7,8 @@ mapped back onto the first, as a row of identical plants invites) does not.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -198,3 +200,23 @@ def test_a_frame_that_leaves_and_comes_back_is_a_spike_but_a_single_jump_is_not(
     # a robot crossing to the other aisle jumps once and stays: not a mis-registration
     turned = {k: c + (np.array([0.0, 5.0, 0.0]) if k >= 10 else 0) for k, c in line.items()}
     assert folds.spikes(_posed_at(turned), folds.FoldOptions()) == []
+
+
+def test_a_chain_of_photos_is_diagnosed_in_the_failure_advice():
+    """Photos that each overlap only their neighbours give two-view tracks, which incremental
+    mapping cannot grow (the robot aisle drives of the SfM benchmark): the advice says so first;
+    a dense walk does not get that tip, and photos with no match are named."""
+    from ghsplat_jax.sfm.pipeline import SfmOptions
+    from ghsplat_jax.sfm.report import failure_advice, match_graph_stats
+
+    chain, _ = _walk(step=1.3)
+    stats = match_graph_stats(chain)
+    assert stats["partners_median"] == 2 and stats["num_pairs"] == len(chain.pairs)
+    assert "matched only 2 others" in failure_advice(SfmOptions(), 12, 0, stats)[0]
+    dense, _ = _walk(step=0.4)
+    assert match_graph_stats(dense)["partners_median"] > 2
+    assert not any("matched only" in tip for tip in failure_advice(SfmOptions(), 12, 0, match_graph_stats(dense)))
+    lonely = dataclasses.replace(dense, pairs={p: m for p, m in dense.pairs.items() if 11 not in p})
+    stats = match_graph_stats(lonely)
+    assert stats["unmatched_images"] == ["011.png"]
+    assert any("011.png" in tip for tip in failure_advice(SfmOptions(), 12, 11, stats))

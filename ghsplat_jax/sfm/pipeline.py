@@ -38,7 +38,7 @@ from ghsplat_jax.sfm.matchgraph import (
     model_poses,
     read_match_graph,
 )
-from ghsplat_jax.sfm.report import failure_advice, reconstruction_stats
+from ghsplat_jax.sfm.report import failure_advice, match_graph_stats, reconstruction_stats
 
 MATCHERS = ("exhaustive", "sequential", "spatial")
 MAPPERS = ("incremental", "global")
@@ -471,6 +471,7 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         result = reconstruct(database, root, names, options, distorted, timings, bar)
         models, best = result.models, result.best
         report["disambiguation"] = result.disambiguation
+        report["match_graph"] = match_graph_stats(result.graph)
         if best is not None and options.fold_check and options.capture_order == "name":
             report["dropped_spikes"] = drop_spikes(best, result.graph, options)
         report.update(_registration(models, best, names))
@@ -508,7 +509,7 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
     if report["status"] == "folded":
         report["advice"] = folds.FOLD_ADVICE
     elif report["status"] != "ok" or report["unregistered_images"]:
-        report["advice"] = failure_advice(options, len(names), report["num_registered"])
+        report["advice"] = failure_advice(options, len(names), report["num_registered"], report["match_graph"])
         used = report.get("disambiguation", {}).get("used", "none")
         if used != "none":
             report["advice"].insert(0, f"every pair mapped together looked folded (look-alike plants); "

@@ -36,16 +36,41 @@ def reconstruction_stats(reconstruction) -> dict:
     }
 
 
-def failure_advice(options, num_images: int, num_registered: int) -> list[str]:
+def match_graph_stats(graph) -> dict:
+    """How many other photos each photo matched (verified pairs of a `MatchGraph`): a chain
+    (about two partners each) gives tracks of two views, which incremental mapping cannot grow."""
+    partners = np.zeros(len(graph.names), int)
+    for i, j in graph.pairs:
+        partners[i] += 1
+        partners[j] += 1
+    return {
+        "num_pairs": len(graph.pairs),
+        "partners_median": _finite(np.median(partners)) if len(partners) else None,
+        "partners_min": int(partners.min()) if len(partners) else None,
+        "unmatched_images": [name for name, k in zip(graph.names, partners) if k == 0],
+    }
+
+
+def failure_advice(options, num_images: int, num_registered: int, graph_stats: dict | None = None) -> list[str]:
     """What to try when SfM registered too few images, most likely fix first."""
     tips = []
+    chain = bool(graph_stats) and graph_stats["partners_median"] is not None and graph_stats["partners_median"] <= 2
+    if chain:
+        tips.append(f"each photo matched only {graph_stats['partners_median']:g} others (median): SfM maps "
+                    "points seen in three or more photos, so take photos closer together (each should "
+                    "overlap the next two by 60-80%; for video lower --min-baseline)")
+    unmatched = (graph_stats or {}).get("unmatched_images") or []
+    if unmatched:
+        tips.append(f"{len(unmatched)} photos matched no other photo ({', '.join(unmatched[:5])}"
+                    f"{', ...' if len(unmatched) > 5 else ''}): they share no view with the rest")
     if options.matching != "sequential":
         tips.append("video or an ordered walk along the row: try --matching sequential "
                     f"(each frame against its {options.sequential_overlap} neighbours)")
     else:
         tips.append("try --matching exhaustive (every pair) or raise --overlap")
-    tips.append("capture with more overlap between neighbouring views (60-80%); for video "
-                "lower --min-baseline so more frames are kept")
+    if not chain:
+        tips.append("capture with more overlap between neighbouring views (60-80%); for video "
+                    "lower --min-baseline so more frames are kept")
     if options.max_size is None or options.max_size > 1000:
         tips.append("try smaller images, e.g. --max-size 1000 (less noise, fewer foliage mismatches)")
     else:
