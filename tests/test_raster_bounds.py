@@ -123,14 +123,21 @@ def test_depth_order_is_a_stable_argsort_on_the_host_and_on_the_device(host):
                                   np.sort(np.asarray(keys)))
 
 
-def test_host_and_device_sorts_bin_the_same_pairs():
+def test_host_and_device_sorts_bin_the_same_pairs(monkeypatch):
     s, cam = mixed_scene(seed=3), camera(80, 56)
     p = project(s, cam, 0.2, 1, True)
     grid = binning.TileGrid.for_image(80, 56, 8)
-    layouts = [binning.bin_pairs(p, 80, 56, grid, 4096, 16, 512, host_sort=host) for host in (True, False)]
+    binning_with = lambda sort: binning.bin_pairs(p, 80, 56, grid, 4096, 16, 512, sort=sort)
+    monkeypatch.setattr(binning, "HOST_SORT_MIN_KEYS", 1)  # this small scene sorts on the host too
+    layouts = [binning_with("auto"), binning_with("xla")]
     for field in ("pair_surfel", "chunk_tile", "chunk_start", "chunk_count", "tile_count", "num_kept"):
         np.testing.assert_array_equal(getattr(layouts[0], field), getattr(layouts[1], field), err_msg=field)
     assert int(layouts[0].num_kept) > 0
-    assert binning.host_sorts("xla") is False
+    import jax
+
+    assert binning.host_sorts("auto", 1 << 16) == (jax.default_backend() == "cpu")
+    assert not binning.host_sorts("xla", 1 << 16)
+    monkeypatch.undo()
+    assert not binning.host_sorts("auto", 4096)  # small sorts stay in XLA (and its compilation cache)
     with pytest.raises(ValueError, match="sort"):
         gs.RasterConfig(sort="numpy")

@@ -17,6 +17,7 @@ from ghsplat_jax.raster.project import Projected
 TILE_MARGIN = 1e-2        # pixels added around a tile's rectangle of pixel centres (float32 slack)
 CONIC_TOLERANCE = 1e-5    # the normalised conic's value still counted as inside (likewise)
 PACKED_KEYS_MAX = int(np.iinfo(np.uint32).max)  # (tile, depth rank) keys up to this sort as one uint32
+HOST_SORT_MIN_KEYS = 1 << 16  # "auto" sorts this many keys or more with NumPy (see host_sorts)
 
 
 @jax.tree_util.register_dataclass
@@ -99,13 +100,13 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
               chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | None = None,
-              host_sort: bool = False) -> Layout:
+              sort: str = "auto") -> Layout:
     """`boxes` (T, 4): render only points inside these per-tile boxes (`samples.PixelSamples`):
     tiles with an empty box get no pairs, and the exact test uses the box, not the tile.
-    `host_sort`: sort with NumPy on the host (`host_sorts`)."""
+    `sort`: `RasterConfig.sort` (see `host_sorts`)."""
     n = p.depth.shape[0]
     lo, hi, counts = tile_ranges(p, width, height, grid, tight, boxes is not None)
-    order = stable_argsort(p.depth, host_sort)
+    order = stable_argsort(p.depth, host_sorts(sort, n))
     sorted_counts = counts[order]
     ends = cumsum(sorted_counts)
     starts = ends - sorted_counts
@@ -127,7 +128,7 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     if tight:
         keep &= tile_touched(p, surfel, tile, tile_xy, grid, boxes)
     tile = jnp.where(keep, tile, grid.num_tiles)
-    tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n, host_sort)
+    tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n, host_sorts(sort, capacity))
 
     tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
     tile_start = cumsum(tile_count) - tile_count
@@ -153,11 +154,13 @@ def _sortable_bits(x: jax.Array) -> jax.Array:
     return jnp.where(b >> 31 == 1, ~b, b | np.uint32(1 << 31))
 
 
-def host_sorts(mode: str) -> bool:
-    """Whether to sort on the host with NumPy (`RasterConfig.sort`): "auto" does on a CPU
-    backend, where NumPy's SIMD sort is about 16x faster than XLA:CPU's (2 ms against 33 ms for
-    655k uint32 keys, measured) and the data is already in host memory; "xla" never does."""
-    return mode == "auto" and jax.default_backend() == "cpu"
+def host_sorts(mode: str, num_keys: int) -> bool:
+    """Whether to sort `num_keys` keys on the host with NumPy (`RasterConfig.sort`). "auto" does
+    on a CPU backend from HOST_SORT_MIN_KEYS keys: there NumPy's SIMD sort is about 16x faster
+    than XLA:CPU's (2 ms against 33 ms for 655k uint32 keys, measured) and the data is already in
+    host memory, while below it the gain is a few ms at most and not worth the host callback
+    (XLA's persistent compilation cache skips programs that have one). "xla" never does."""
+    return mode == "auto" and num_keys >= HOST_SORT_MIN_KEYS and jax.default_backend() == "cpu"
 
 
 def _host_sort(x) -> np.ndarray:

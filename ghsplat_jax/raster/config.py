@@ -35,9 +35,9 @@ class RasterConfig:
     median: bool = True                    # compute median_depth (False: zeros, and faster)
     distortion: bool = True                # compute distortion (False: zeros, and faster)
     sh_degree: int | None = None           # active SH bands; None uses every band the data has
-    sort: str = "auto"                     # binning's sorts: "auto" (NumPy's on a CPU backend, through a
-                                           # host callback: 16x faster than XLA:CPU's, but XLA's persistent
-                                           # compilation cache skips such programs) or "xla" (always XLA's)
+    sort: str = "auto"                     # binning's sorts: "auto" (NumPy's for large sorts on a CPU backend,
+                                           # through a host callback: 16x faster than XLA:CPU's, but XLA's
+                                           # persistent compilation cache skips such programs) or "xla"
     pair_capacity: int | None = None       # static tile-surfel pair buffer; None sizes it automatically
     on_overflow: str = "raise"             # under jit: "raise" a runtime error or "report" in stats only
 

@@ -124,7 +124,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
                           0 if samples is None else samples.slots)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
                                _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",
-                               None if samples is None else samples.boxes, binning.host_sorts(cfg.sort))
+                               None if samples is None else samples.boxes, cfg.sort)
     if cfg.backend == "dense":
         slots = tile_slots or min(s.means.shape[0], capacity)
         starts = jnp.cumsum(layout.tile_count) - layout.tile_count
