@@ -43,7 +43,8 @@ RESULTS = Path(__file__).parent / "results"
 # Changes of the run's settings timed beside the tile x chunk grid.
 VARIANTS = {"batch32": dict(batch_chunks=32), "batch64": dict(batch_chunks=64), "box3": dict(bounds="box3"),
             "logspace": dict(compositor="logspace", bounds="box3", batch_chunks=16),
-            "logspace-autodiff": dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16)}
+            "logspace-autodiff": dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16),
+            "xla-sort": dict(sort="xla")}
 
 
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
@@ -71,7 +72,9 @@ def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
 
 
 def _label(r: dict) -> str:
-    return f"{r['compositor']} {r['bounds']} {r['backward']}, tile {r['tile_size']}, chunk {r['chunk_size']}x{r['batch_chunks']}"
+    sort = f", {r['sort']} sort" if r.get("sort", "auto") != "auto" else ""
+    return (f"{r['compositor']} {r['bounds']} {r['backward']}, tile {r['tile_size']}, "
+            f"chunk {r['chunk_size']}x{r['batch_chunks']}{sort}")
 
 
 def chart(rows: list[dict], title: str, path: Path) -> None:
@@ -125,7 +128,7 @@ def main(argv=None) -> int:
             images.append(rgb)
         reference = images if reference is None else reference
         row = dict(compositor=cfg.compositor, bounds=cfg.bounds, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                   backward=cfg.backward, batch_chunks=cfg.batch_chunks, load_average=os.getloadavg()[0],
+                   backward=cfg.backward, batch_chunks=cfg.batch_chunks, sort=cfg.sort, load_average=os.getloadavg()[0],
                    **{k: float(np.median([p[k] for p in per_view])) for k in per_view[0]})
         row["max_abs_diff_vs_default"] = float(max(np.max(np.abs(a - b)) for a, b in zip(images, reference)))
         rows.append(row)
