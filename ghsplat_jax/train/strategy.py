@@ -198,7 +198,8 @@ class DefaultStrategy(Strategy):
         """The pool fitted to the live surfels (a recompile when it shrinks)."""
         fitted = fit_pool(state)
         if fitted.capacity < state.capacity:
-            log.info("densification over: surfel pool %d -> %d slots", state.capacity, fitted.capacity)
+            log.info("densification over: surfel pool %d -> %d slots for %d surfels", state.capacity,
+                     fitted.capacity, fitted.num_active())
         return fitted
 
 
