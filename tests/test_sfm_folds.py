@@ -160,11 +160,27 @@ def test_order_filter_keeps_verified_long_pairs_and_drops_aliased_ones():
     aliased = dict(graph.pairs)
     aliased[(0, 5)] = np.column_stack([np.arange(40), rng.permutation(len(graph.keypoints[5]))[:40]])
     graph = MatchGraph(graph.names, graph.image_ids, graph.camera_ids, graph.keypoints, aliased)
-    keep, info = dis.order_filter(graph, [_model(poses)], options)
+    keep, info, narrowed = dis.order_filter(graph, [_model(poses)], options)
     assert dis.sequential_pairs(graph, options) <= keep
     assert (0, 2) in keep and (0, 5) not in keep
     assert info["num_long_range_kept"] == info["num_long_range_pairs"] - 1
     assert pair_agreement(graph, _model(poses), (0, 5), 1.0) < 0.5
+    assert set(narrowed) == keep - dis.sequential_pairs(graph, options)  # trusted pairs stay whole
+    assert info["num_matches_dropped_from_kept"] == 0
+
+
+def test_order_filter_keeps_only_the_agreeing_matches_of_a_kept_pair():
+    graph, poses = _walk()
+    # pair (0, 3): its true matches plus a few aliased ones (look-alike keypoints of image 3)
+    true = graph.pairs[(0, 3)]
+    rng = np.random.default_rng(2)
+    bad = np.column_stack([rng.choice(len(graph.keypoints[0]), 8), rng.choice(len(graph.keypoints[3]), 8)])
+    bad = bad[~(bad[:, None] == true[None]).all(-1).any(1)]
+    graph = dataclasses.replace(graph, pairs={**graph.pairs, (0, 3): np.concatenate([true, bad])})
+    keep, info, narrowed = dis.order_filter(graph, [_model(poses)], dis.DisambiguateOptions(window=1))
+    assert (0, 3) in keep
+    np.testing.assert_array_equal(narrowed[(0, 3)], true)
+    assert info["num_matches_dropped_from_kept"] == len(bad)
 
 
 def test_track_filter_drops_pairs_made_of_confusing_tracks():
@@ -220,3 +236,35 @@ def test_a_chain_of_photos_is_diagnosed_in_the_failure_advice():
     stats = match_graph_stats(lonely)
     assert stats["unmatched_images"] == ["011.png"]
     assert any("011.png" in tip for tip in failure_advice(SfmOptions(), 12, 11, stats))
+
+
+def test_keep_pairs_writes_the_narrowed_matches_in_capture_order(tmp_path):
+    """A real database whose image ids run against the capture order: keep_pairs drops the
+    pairs outside `keep` and stores a narrowed pair's matches the right way round."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from ghsplat_jax.sfm.matchgraph import keep_pairs, read_match_graph
+
+    source = tmp_path / "database.db"
+    db = pycolmap.Database.open(str(source))
+    camera_id = db.write_camera(pycolmap.Camera(model="SIMPLE_PINHOLE", width=320, height=240, params=[F, CX, CY]))
+    rng = np.random.default_rng(0)
+    names = ["a.png", "b.png", "c.png"]
+    ids = {name: db.write_image(pycolmap.Image(name=name, camera_id=camera_id)) for name in reversed(names)}
+    for name in names:
+        db.write_keypoints(ids[name], rng.uniform(0, 200, (50, 2)).astype(np.float32))
+    for a, b in (("a.png", "b.png"), ("a.png", "c.png"), ("b.png", "c.png")):
+        geometry = pycolmap.TwoViewGeometry()
+        geometry.config = 2  # calibrated
+        geometry.inlier_matches = np.column_stack([np.arange(20), np.arange(20)[::-1] + 5]).astype(np.uint32)
+        db.write_two_view_geometry(ids[a], ids[b], geometry)
+    db.close()
+
+    graph = read_match_graph(source, names)
+    assert ids["a.png"] > ids["c.png"]  # capture order (0, 2) is stored as (id c, id a)
+    narrowed = {(0, 2): graph.pairs[(0, 2)][2:18]}
+    target = tmp_path / "filtered.db"
+    assert keep_pairs(source, target, graph, {(0, 1), (0, 2)}, narrowed) == 1
+    filtered = read_match_graph(target, names)
+    assert set(filtered.pairs) == {(0, 1), (0, 2)}
+    np.testing.assert_array_equal(filtered.pairs[(0, 2)], graph.pairs[(0, 2)][2:18])
+    np.testing.assert_array_equal(filtered.pairs[(0, 1)], graph.pairs[(0, 1)])

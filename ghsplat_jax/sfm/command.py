@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--max-size", type=int, default=1600,
                    help="longest image side in pixels for extraction and output (0: full size)")
     g.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
+    g.add_argument("--sift-peak-threshold", type=float, default=None,
+                   help="SIFT contrast threshold (default a third of COLMAP's 0.0067: more features "
+                        "on low-contrast foliage; raise it to extract fewer)")
     g.add_argument("--overlap", type=int, default=10, help="neighbours per frame for sequential matching")
     g.add_argument("--min-registered-fraction", type=float, default=0.9,
                    help="exit with status 3 when fewer images than this fraction register")
@@ -159,7 +162,7 @@ def build_options(args: argparse.Namespace):
     disambiguation = DisambiguateOptions(cyclic=args.loop)
     if args.disambiguate_window is not None:
         disambiguation = dataclasses.replace(disambiguation, window=args.disambiguate_window)
-    return SfmOptions(
+    options = SfmOptions(
         disambiguate=args.disambiguate, capture_order=args.capture_order,
         disambiguate_options=disambiguation, fold_check=not args.no_fold_check,
         matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
@@ -170,6 +173,9 @@ def build_options(args: argparse.Namespace):
         known_distance_names=known, undistort=not args.no_undistort,
         num_threads=args.threads, seed=args.seed, progress=not args.quiet,
     )
+    if args.sift_peak_threshold is not None:
+        options = dataclasses.replace(options, sift_peak_threshold=args.sift_peak_threshold)
+    return options
 
 
 def main(args: argparse.Namespace) -> int:

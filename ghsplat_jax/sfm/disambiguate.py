@@ -7,16 +7,17 @@ plants; the mapper then folds the row onto itself. Two filters, chosen by
 - "order" (capture-order prior with loop verification): frames shot while walking are
   neighbours, so pairs within `window` frames of each other are trusted; a first map from
   those pairs alone (the chain) predicts the pose of every other pair, and a long-range
-  pair is kept only when most of its matches agree with that prediction. Needs the
-  capture order (file names, sorted).
+  pair is kept only when most of its matches agree with that prediction, and with those
+  matches only. Needs the capture order (file names, sorted).
 - "tracks" (track context on the match graph, after Yan et al., CVPR 2017): a path network
   (maximum spanning tree plus each image's strongest pairs) gives a geodesic distance
   between images; a track whose images lie far apart on it is "confusing" (the same
   plant part seen at several places), and a pair whose matches are mostly confusing is
   dropped. Needs no capture order.
 
-Both return the set of pairs to keep plus a report; pipeline.py writes a filtered copy of
-the database and maps from it.
+Both return the set of pairs to keep plus a report (the order filter also the agreeing
+matches of each long-range pair it keeps); pipeline.py writes a filtered copy of the
+database and maps from it.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import dataclasses
 
 import numpy as np
 
-from ghsplat_jax.sfm.matchgraph import MatchGraph, ModelPoses, pair_agreement
+from ghsplat_jax.sfm.matchgraph import MatchGraph, ModelPoses, agreeing_matches
 
 METHODS = ("auto", "order", "tracks", "none")
 
@@ -61,30 +62,36 @@ def sequential_pairs(graph: MatchGraph, options: DisambiguateOptions) -> set[tup
 
 
 def chain_agreement(graph: MatchGraph, chain: list[ModelPoses], pair: tuple[int, int],
-                    angle_deg: float) -> float | None:
-    """Agreement of a pair with the first chain segment that holds both images (None: none does)."""
+                    angle_deg: float) -> np.ndarray | None:
+    """(M,) bool: which of the pair's matches agree with the first chain segment that holds
+    both images (None: none does)."""
     for segment in chain:
-        score = pair_agreement(graph, segment, pair, angle_deg)
-        if score is not None:
-            return score
+        ok = agreeing_matches(graph, segment, pair, angle_deg)
+        if ok is not None:
+            return ok
     return None
 
 
 def order_filter(graph: MatchGraph, chain: list[ModelPoses], options: DisambiguateOptions):
-    """(pairs to keep, report) for the capture-order prior, given the chain's segments."""
+    """(pairs to keep, report, narrowed) for the capture-order prior, given the chain's segments.
+    A long-range pair is kept when most of its matches agree with the chain, and then with
+    those matches only (`narrowed`, {pair: (M, 2) matches}): a look-alike plant can add a few
+    aliased matches to a pair whose others are right, and a few are enough to bend the map."""
     trusted = sequential_pairs(graph, options)
-    scores = {p: chain_agreement(graph, chain, p, options.verify_angle_deg)
-              for p in graph.pairs if p not in trusted}
-    kept = {p for p, a in scores.items() if a is not None and a >= options.min_agreement}
-    return trusted | kept, {
+    agree = {p: chain_agreement(graph, chain, p, options.verify_angle_deg)
+             for p in graph.pairs if p not in trusted}
+    narrowed = {p: graph.pairs[p][ok] for p, ok in agree.items()
+                if ok is not None and len(ok) and ok.mean() >= options.min_agreement}
+    return trusted | set(narrowed), {
         "method": "order",
         "num_pairs": len(graph.pairs),
         "num_sequential_pairs": len(trusted),
-        "num_long_range_pairs": len(scores),
-        "num_long_range_kept": len(kept),
-        "num_long_range_unverifiable": sum(a is None for a in scores.values()),  # no segment holds both
+        "num_long_range_pairs": len(agree),
+        "num_long_range_kept": len(narrowed),
+        "num_long_range_unverifiable": sum(ok is None for ok in agree.values()),  # no segment holds both
+        "num_matches_dropped_from_kept": int(sum(len(graph.pairs[p]) - len(m) for p, m in narrowed.items())),
         "chain_segments": [len(s.world_to_cam) for s in chain],
-    }
+    }, narrowed
 
 
 # ---------------------------------------------------------------------------- track context

@@ -58,9 +58,12 @@ def read_match_graph(database: Path, names: list[str], min_inliers: int = 15) ->
                       [images[n].camera_id for n in present], keypoints, pairs)
 
 
-def keep_pairs(source: Path, target: Path, graph: MatchGraph, keep: set[tuple[int, int]]) -> int:
+def keep_pairs(source: Path, target: Path, graph: MatchGraph, keep: set[tuple[int, int]],
+               narrowed: dict[tuple[int, int], np.ndarray] | None = None) -> int:
     """Copy database `source` to `target` without the verified pairs outside `keep`; returns
-    how many were removed. Features and raw matches stay, so the mapper sees only `keep`."""
+    how many were removed. Features and raw matches stay, so the mapper sees only `keep`.
+    `narrowed` {pair: (M, 2) keypoint indices, as in `graph.pairs`} replaces those pairs'
+    inlier matches, so the mapper sees only the matches kept there."""
     import pycolmap
 
     for suffix in ("", "-wal", "-shm"):
@@ -76,6 +79,11 @@ def keep_pairs(source: Path, target: Path, graph: MatchGraph, keep: set[tuple[in
             if tuple(sorted((id1, id2))) not in wanted:
                 db.delete_two_view_geometry(id1, id2)
                 removed += 1
+        for (i, j), matches in (narrowed or {}).items():
+            # read and written in capture order (i, j): pycolmap swaps the stored pair as needed
+            geometry = db.read_two_view_geometry(graph.image_ids[i], graph.image_ids[j])
+            geometry.inlier_matches = np.ascontiguousarray(matches, np.uint32)
+            db.update_two_view_geometry(graph.image_ids[i], graph.image_ids[j], geometry)
     finally:
         db.close()
     return removed
@@ -140,14 +148,20 @@ def ray_agreement(xa: np.ndarray, xb: np.ndarray, w2c_a: np.ndarray, w2c_b: np.n
     return np.where(far, far_ok, near_ok)
 
 
-def pair_agreement(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, int],
-                   max_angle_deg: float) -> float | None:
-    """Fraction of the pair's inlier matches that agree with the poses (None: not both posed)."""
+def agreeing_matches(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, int],
+                     max_angle_deg: float) -> np.ndarray | None:
+    """(M,) bool: which of the pair's inlier matches agree with the poses (None: not both posed)."""
     i, j = pair
     if i not in poses.world_to_cam or j not in poses.world_to_cam:
         return None
     matches = graph.pairs[pair]
     xa = np.asarray(poses.normalise[i](graph.keypoints[i][matches[:, 0]]), float)
     xb = np.asarray(poses.normalise[j](graph.keypoints[j][matches[:, 1]]), float)
-    ok = ray_agreement(xa, xb, poses.world_to_cam[i], poses.world_to_cam[j], np.radians(max_angle_deg))
-    return float(ok.mean()) if len(ok) else None
+    return ray_agreement(xa, xb, poses.world_to_cam[i], poses.world_to_cam[j], np.radians(max_angle_deg))
+
+
+def pair_agreement(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, int],
+                   max_angle_deg: float) -> float | None:
+    """Fraction of the pair's inlier matches that agree with the poses (None: not both posed)."""
+    ok = agreeing_matches(graph, poses, pair, max_angle_deg)
+    return float(ok.mean()) if ok is not None and len(ok) else None
