@@ -127,6 +127,14 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
     assert report["machine"]["cpu_count"] and len(report["rows"]) == 3
     assert (tmp_path / "results" / "stability.csv").read_text().count("\n") == 4
 
+    # a partial rerun (ghsplat run --only) replaces its case's rows and keeps the others'
+    exp.spec["cases"][1]["width"] = 32
+    rerun = stability.run_study(exp, only={"sparse"})
+    assert [r["case"] for r in rerun["rows"]] == ["ident", "sparse", "broken"]
+    assert rerun["rows"][1]["seconds"] != rows["sparse"]["seconds"]  # computed again (new key)
+    assert rerun["rows"][0] == json.loads(json.dumps(stability._clean(rows["ident"])))
+    assert len(json.loads((tmp_path / "results" / "stability.json").read_text())["rows"]) == 3
+
 
 def test_degenerate_scene_matches_the_reference_and_counts_the_culled():
     # 64x48 shows the surfel whose 3-sigma ellipse crosses the camera plane on the horizon rows:

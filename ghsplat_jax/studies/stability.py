@@ -521,9 +521,17 @@ def run_study(exp, only: set[str] | None = None) -> dict:
             ctx.baseline_psnr = got[0].get("test_psnr")
         rows.extend(got)
     order = {c["name"]: i for i, c in enumerate(check_cases(spec.get("cases")))}
+    if only:  # a partial rerun: the other cases keep their rows from the last full report
+        rows += [r for r in _reported_rows(exp) if r["case"] in order and r["case"] not in {c["name"] for c in cases}]
     rows.sort(key=lambda r: order.get(r["case"], len(order)))  # the file's order (stable within a case)
     reports = write_reports(rows, exp, spec)
     return {"rows": rows, "failed": failed, "reports": reports}
+
+
+def _reported_rows(exp) -> list[dict]:
+    """Rows of the last written report (RESULTS/stability.json), [] without one."""
+    path = Path(exp.results) / "stability.json"
+    return json.loads(path.read_text())["rows"] if path.is_file() else []
 
 
 def _clean(obj):
