@@ -166,6 +166,21 @@ def test_align_config_file_and_flags(tmp_path):
         command.build_options(parser.parse_args(base))
 
 
+def test_sift_peak_threshold_flag():
+    import argparse
+
+    from ghsplat_jax.sfm import command
+    from ghsplat_jax.sfm.pipeline import SfmError, SfmOptions
+
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    base = ["--images", "in", "--out", "out"]
+    assert command.build_options(parser.parse_args(base)).sift_peak_threshold == SfmOptions().sift_peak_threshold
+    assert command.build_options(parser.parse_args(base + ["--sift-peak-threshold", "0.002"])).sift_peak_threshold == 0.002
+    with pytest.raises(SfmError, match="sift_peak_threshold"):
+        SfmOptions(sift_peak_threshold=0.0).validate()
+
+
 def test_spatial_matching_without_gps_says_so(tmp_path, capsys):
     images = tmp_path / "images"
     images.mkdir()

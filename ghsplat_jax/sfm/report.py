@@ -48,6 +48,7 @@ def match_graph_stats(graph) -> dict:
         "partners_median": _finite(np.median(partners)) if len(partners) else None,
         "partners_min": int(partners.min()) if len(partners) else None,
         "unmatched_images": [name for name, k in zip(graph.names, partners) if k == 0],
+        "keypoints_median": _finite(np.median([len(k) for k in graph.keypoints])) if graph.keypoints else None,
     }
 
 
@@ -63,6 +64,12 @@ def failure_advice(options, num_images: int, num_registered: int, graph_stats: d
     if unmatched:
         tips.append(f"{len(unmatched)} photos matched no other photo ({', '.join(unmatched[:5])}"
                     f"{', ...' if len(unmatched) > 5 else ''}): they share no view with the rest")
+    features = (graph_stats or {}).get("keypoints_median")
+    if features is not None and features < 0.5 * options.max_features:
+        tips.append(f"the photos gave a median of {features:g} SIFT features each (--max-features allows "
+                    f"{options.max_features}): a lower --sift-peak-threshold (now {options.sift_peak_threshold:g}, "
+                    "e.g. a third of it) finds more on low-contrast foliage; check the model's accuracy, as "
+                    "weaker views register too")
     if options.matching != "sequential":
         tips.append("video or an ordered walk along the row: try --matching sequential "
                     f"(each frame against its {options.sequential_overlap} neighbours)")
