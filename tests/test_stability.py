@@ -144,3 +144,24 @@ def test_degenerate_scene_matches_the_reference_and_counts_the_culled():
     assert row["finite"] and row["num_invalid"] == 3 and row["num_culled_near"] >= 1
     assert "num_invalid = 3" in row["detection"]
     assert row["result"] == "pass" and row["max_abs_alpha"] < 1e-3, row["error"]
+
+
+def test_cached_sfm_rows_follow_their_source(tmp_path, monkeypatch):
+    """A case's cached rows are reused only while what they came from is unchanged: the
+    recorded benchmark file for sfm_recorded, the SfM defaults for live SfM cases."""
+    recorded = tmp_path / "results.json"
+    recorded.write_text('{"rows": []}')
+    monkeypatch.setattr(stability, "RECORDED", recorded)
+    case = {"family": "sfm_recorded", "name": "r", "recorded": "x"}
+    before = stability._key(case, None)
+    assert stability._key(case, None) == before
+    recorded.write_text('{"rows": [1]}')
+    assert stability._key(case, None) != before
+    live = {"family": "sfm", "name": "s"}
+    from ghsplat_jax.sfm import pipeline
+
+    default = stability._key(live, None)
+    import functools
+
+    monkeypatch.setattr(pipeline, "SfmOptions", functools.partial(pipeline.SfmOptions, sift_peak_threshold=0.002))
+    assert stability._key(live, None) != default

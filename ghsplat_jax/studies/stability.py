@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import io
 import itertools
 import json
@@ -471,6 +472,12 @@ def _key(case: dict, ctx) -> str:
     extra = {}
     if case["family"] in ("train", "divergence"):
         extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "baseline": ctx.baseline_psnr}
+    elif case["family"] == "sfm_recorded":  # the rows it reads
+        extra = {"recorded": hashlib.sha256(RECORDED.read_bytes()).hexdigest() if RECORDED.is_file() else None}
+    elif case["family"] == "sfm":  # the SfM defaults it runs with
+        from ghsplat_jax.sfm.pipeline import SfmOptions
+
+        extra = {"sfm": dataclasses.asdict(SfmOptions())}
     return json.dumps({"case": case, **extra}, sort_keys=True, default=str)
 
 
