@@ -273,3 +273,12 @@ def test_keep_pairs_writes_the_narrowed_matches_in_capture_order(tmp_path):
     assert set(filtered.pairs) == {(0, 1), (0, 2)}
     np.testing.assert_array_equal(filtered.pairs[(0, 2)], graph.pairs[(0, 2)][2:18])
     np.testing.assert_array_equal(filtered.pairs[(0, 1)], graph.pairs[(0, 1)])
+
+
+def test_chain_segments_inside_larger_ones_are_dropped():
+    _, poses = _walk(n=12)
+    full = _model(poses)
+    views = lambda ks: ModelPoses({k: full.world_to_cam[k] for k in ks}, full.normalise, full.focal)  # noqa: E731
+    big, inside, other = views(range(8)), views(range(3, 6)), views(range(6, 11))
+    kept = dis.distinct_segments([inside, other, big])
+    assert [sorted(s.world_to_cam) for s in kept] == [list(range(8)), [6, 7, 8, 9, 10]]

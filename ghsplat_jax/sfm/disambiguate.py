@@ -61,6 +61,18 @@ def sequential_pairs(graph: MatchGraph, options: DisambiguateOptions) -> set[tup
     return {p for p in graph.pairs if graph.order_distance(*p, cyclic=options.cyclic) <= options.window}
 
 
+def distinct_segments(segments: list[ModelPoses]) -> list[ModelPoses]:
+    """Chain segments, largest first, without those whose images a larger one already holds:
+    the mapper may map a few of a segment's images again as a model of their own, and that
+    smaller, weaker model adds nothing to check against (a 5-view copy turned one camera by
+    10 degrees and flagged a correct model as folded)."""
+    kept: list[ModelPoses] = []
+    for segment in sorted(segments, key=lambda s: len(s.world_to_cam), reverse=True):
+        if not any(set(segment.world_to_cam) <= set(k.world_to_cam) for k in kept):
+            kept.append(segment)
+    return kept
+
+
 def chain_agreement(graph: MatchGraph, chain: list[ModelPoses], pair: tuple[int, int],
                     angle_deg: float) -> np.ndarray | None:
     """(M,) bool: which of the pair's matches agree with the first chain segment that holds

@@ -323,17 +323,16 @@ def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> No
 
 
 def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions) -> list[ModelPoses]:
-    """The chain: segments mapped from the trusted neighbour pairs alone (largest first). It
-    cannot fold (no look-alike pair between distant frames reaches it); it may break where
-    neighbours share too little, hence segments."""
+    """The chain: segments mapped from the trusted neighbour pairs alone (largest first, none
+    a subset of another). It cannot fold (no look-alike pair between distant frames reaches
+    it); it may break where neighbours share too little, hence segments."""
     distorted = database.parent
     chain_db = distorted / "chain.db"
     keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, options.disambiguate_options))
     models = map_images(chain_db, root, distorted / "chain_models", options)
     shutil.rmtree(distorted / "chain_models", ignore_errors=True)
     chain_db.unlink(missing_ok=True)
-    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
-    return [model_poses(r, graph) for r in ranked]
+    return dis.distinct_segments([model_poses(r, graph) for r in models.values()])
 
 
 def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
