@@ -238,7 +238,7 @@ def test_a_chain_of_photos_is_diagnosed_in_the_failure_advice():
     assert any("011.png" in tip for tip in failure_advice(SfmOptions(), 12, 11, stats))
     # few features for the cap (small or low-contrast photos): the peak threshold is the knob
     assert stats["keypoints_median"] == np.median([len(k) for k in lonely.keypoints]) < 4096
-    assert any("--sift-peak-threshold (now 0.0067" in tip for tip in failure_advice(SfmOptions(), 12, 11, stats))
+    assert any("--sift-peak-threshold (now 0.00667" in tip for tip in failure_advice(SfmOptions(), 12, 11, stats))
     capped = dict(stats, keypoints_median=8000.0)
     assert not any("--sift-peak-threshold" in tip for tip in failure_advice(SfmOptions(), 12, 11, capped))
 

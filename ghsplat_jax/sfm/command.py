@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="longest image side in pixels for extraction and output (0: full size)")
     g.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
     g.add_argument("--sift-peak-threshold", type=float, default=None,
-                   help="SIFT contrast threshold (default COLMAP's 0.0067); lower finds more features "
+                   help="SIFT contrast threshold (default COLMAP's 0.02/3 = 0.00667); lower finds more features "
                         "on low-contrast foliage and registers more views, not always as accurately")
     g.add_argument("--overlap", type=int, default=10, help="neighbours per frame for sequential matching")
     g.add_argument("--min-registered-fraction", type=float, default=0.9,

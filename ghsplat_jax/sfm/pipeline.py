@@ -64,11 +64,11 @@ class SfmOptions:
     camera_mode: str = "per-folder"  # one shared camera per folder of images
     max_size: int | None = 1600  # longest side for extraction and undistorted output (None: full)
     max_features: int = 8192  # SIFT features per image
-    # SIFT's contrast threshold (COLMAP's default). A third of it found 1.4x the features on
+    # SIFT's contrast threshold (COLMAP's default, 0.02 / 3). A third of it found 1.4x the features on
     # 480x360 rows of plants and chained more of a hand-held loop (auto: 24-27 of 40 views
     # verified, against 10-15), but on the demo's row plain mapping then registered 31 of 32
-    # views at 0.83% RMSE (3.2% max) against 26 at 0.16%: more views, 5x the error, so not default.
-    sift_peak_threshold: float = 0.0067
+    # views at 0.83% RMSE (3.2% max) against 26 at 0.16% (at 0.0067): 5x the error, so not default.
+    sift_peak_threshold: float = 0.02 / 3
     sequential_overlap: int = 10  # neighbours matched per frame in sequential matching
     min_registered_fraction: float = 0.9  # below this the run counts as failed
     disambiguate: str = "auto"  # "auto": plain, re-mapped through a pair filter when it looks

@@ -67,7 +67,7 @@ def failure_advice(options, num_images: int, num_registered: int, graph_stats: d
     features = (graph_stats or {}).get("keypoints_median")
     if features is not None and features < 0.5 * options.max_features:
         tips.append(f"the photos gave a median of {features:g} SIFT features each (--max-features allows "
-                    f"{options.max_features}): a lower --sift-peak-threshold (now {options.sift_peak_threshold:g}, "
+                    f"{options.max_features}): a lower --sift-peak-threshold (now {options.sift_peak_threshold:.3g}, "
                     "e.g. a third of it) finds more on low-contrast foliage; check the model's accuracy, as "
                     "weaker views register too")
     if options.matching != "sequential":
