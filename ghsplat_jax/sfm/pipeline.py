@@ -336,8 +336,9 @@ def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions
 
 
 def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
-                 chain: list[ModelPoses] | None) -> tuple[Path, dict, set]:
-    """(database to map from, disambiguation report, pairs kept) for `method` (order, tracks)."""
+                 chain: list[ModelPoses] | None) -> tuple[Path, dict, dict]:
+    """(database to map from, disambiguation report, {pair kept: the matches the mapper sees})
+    for `method` (order, tracks)."""
     opts = options.disambiguate_options
     narrowed = None
     if method == "tracks":
@@ -346,7 +347,7 @@ def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, opt
         keep, info, narrowed = dis.order_filter(graph, chain or [], opts)
     filtered = database.parent / "database_filtered.db"
     info["num_pairs_removed"] = keep_pairs(database, filtered, graph, keep, narrowed)
-    return filtered, info, keep
+    return filtered, info, {p: (narrowed or {}).get(p, graph.pairs[p]) for p in keep}
 
 
 @dataclasses.dataclass
@@ -369,8 +370,8 @@ def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, op
     """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics."""
     mapped_graph, mapping_db, info = graph, database, {"method": "none"}
     if method != "none":
-        mapping_db, info, keep = filter_pairs(database, root, graph, method, options, chain)
-        mapped_graph = dataclasses.replace(graph, pairs={p: graph.pairs[p] for p in keep})
+        mapping_db, info, mapped_pairs = filter_pairs(database, root, graph, method, options, chain)
+        mapped_graph = dataclasses.replace(graph, pairs=mapped_pairs)
     models = map_images(mapping_db, root, models_dir, options)
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     diagnostics = None
