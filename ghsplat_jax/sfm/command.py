@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         CAPTURE_ORDERS,
         MAPPERS,
         MATCHERS,
+        SfmOptions,
     )
 
     parser.add_argument("--images", required=True, type=Path,
@@ -49,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--max-size", type=int, default=1600,
                    help="longest image side in pixels for extraction and output (0: full size)")
     g.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
-    g.add_argument("--sift-peak-threshold", type=float, default=None,
+    g.add_argument("--sift-peak-threshold", type=float, default=SfmOptions.sift_peak_threshold,
                    help="SIFT contrast threshold (default COLMAP's 0.02/3 = 0.00667); lower finds more features "
                         "on low-contrast foliage and registers more views, not always as accurately")
     g.add_argument("--overlap", type=int, default=10, help="neighbours per frame for sequential matching")
@@ -162,20 +163,18 @@ def build_options(args: argparse.Namespace):
     disambiguation = DisambiguateOptions(cyclic=args.loop)
     if args.disambiguate_window is not None:
         disambiguation = dataclasses.replace(disambiguation, window=args.disambiguate_window)
-    options = SfmOptions(
+    return SfmOptions(
         disambiguate=args.disambiguate, capture_order=args.capture_order,
         disambiguate_options=disambiguation, fold_check=not args.no_fold_check,
         matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
         camera_mode=args.camera_mode, max_size=args.max_size or None,
-        max_features=args.max_features, sequential_overlap=args.overlap,
+        max_features=args.max_features, sift_peak_threshold=args.sift_peak_threshold,
+        sequential_overlap=args.overlap,
         min_registered_fraction=args.min_registered_fraction, select_frames=args.select_frames,
         frame_options=frames, align=args.align, align_options=align,
         known_distance_names=known, undistort=not args.no_undistort,
         num_threads=args.threads, seed=args.seed, progress=not args.quiet,
     )
-    if args.sift_peak_threshold is not None:
-        options = dataclasses.replace(options, sift_peak_threshold=args.sift_peak_threshold)
-    return options
 
 
 def main(args: argparse.Namespace) -> int:

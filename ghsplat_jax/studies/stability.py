@@ -529,7 +529,8 @@ def run_study(exp, only: set[str] | None = None) -> dict:
         rows.extend(got)
     order = {c["name"]: i for i, c in enumerate(check_cases(spec.get("cases")))}
     if only:  # a partial rerun: the other cases keep their rows from the last full report
-        rows += [r for r in _reported_rows(exp) if r["case"] in order and r["case"] not in {c["name"] for c in cases}]
+        rerun = {c["name"] for c in cases}
+        rows += [r for r in _reported_rows(exp) if r["case"] in order and r["case"] not in rerun]
     rows.sort(key=lambda r: order.get(r["case"], len(order)))  # the file's order (stable within a case)
     reports = write_reports(rows, exp, spec)
     return {"rows": rows, "failed": failed, "reports": reports}
