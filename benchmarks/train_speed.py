@@ -3,6 +3,7 @@
     python benchmarks/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
     python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
     python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
+    python benchmarks/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -10,7 +11,12 @@ from the same state and views, after a warm-up step that compiles; times are med
 compositor, 3-sigma boxes, every output computed, 16-chunk batches. With `--compare pool` both
 variants use the current rasterizer and "previous" keeps the checkpoint's surfel pool as it grew
 (doubling, before pool buckets), while "current" is compacted to the smallest pool bucket that
-holds the live surfels, as the default strategy now does. The same process also measures
+holds the live surfels, as the default strategy now does. With `--compare malloc` both use the same settings and
+"previous" runs under glibc's default allocation policy, "current" under
+`host_memory.reuse_freed_memory` (what the `ghsplat` command sets). The policy is process-wide
+and cannot be switched back and forth (a trimmed heap faults in again as it regrows), so each
+policy runs in its own child process, twice each, alternating; the rows pool their steps. Every
+row also counts the page faults per step. The same process also measures
 the machine's fused exp rate, so throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
@@ -23,6 +29,8 @@ import json
 import os
 import platform
 import resource
+import subprocess
+import sys
 import tempfile
 import textwrap
 import time
@@ -34,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax import host_memory
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
@@ -59,10 +68,19 @@ def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=No
     return session
 
 
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _minor_faults() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int, transforms=None) -> dict:
-    """Median wall and CPU seconds per training step for each config, from the same checkpoint
-    (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(state)} applied
-    after loading), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike."""
+    """Median wall and CPU seconds and page faults per training step for each config, from the
+    same checkpoint (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(state)}
+    applied after loading), the configs' steps interleaved (A, B, A, B, ...) so drifting load
+    hits them alike. Each row keeps its raw samples."""
     checkpoints = checkpoint if isinstance(checkpoint, dict) else dict.fromkeys(configs, checkpoint)
     transforms = transforms or {}
     sessions = {name: _session(cfg, dataset, checkpoints[name], transforms.get(name)) for name, cfg in configs.items()}
@@ -70,18 +88,42 @@ def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: in
     samples = {name: [] for name in sessions}
     for k in range(steps):
         for name, session in sessions.items():
-            t0, c0 = time.perf_counter(), time.process_time()
+            t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
             m = session.step(starts[name] + k)
-            samples[name].append((time.perf_counter() - t0, time.process_time() - c0, m["num_pairs"]))
+            samples[name].append((time.perf_counter() - t0, time.process_time() - c0, m["num_pairs"],
+                                  _minor_faults() - f0))
     rows = {}
     for name, session in sessions.items():
-        wall, cpu, pairs = (np.array(v) for v in zip(*samples[name]))
-        rows[name] = dict(step=starts[name], surfels=int(jnp.sum(session.state.active)), pool=session.state.capacity,
-                          pair_capacity=session.pair_capacity, candidate_pairs=float(np.median(pairs)),
-                          seconds_per_step=float(np.median(wall)), cpu_seconds_per_step=float(np.median(cpu)),
-                          load_average=os.getloadavg()[0])
+        rows[name] = _row(dict(step=starts[name], surfels=int(jnp.sum(session.state.active)),
+                               pool=session.state.capacity, pair_capacity=session.pair_capacity),
+                          [list(map(float, sample)) for sample in samples[name]])
         print(name, rows[name], flush=True)
     return rows
+
+
+def _row(facts: dict, samples: list) -> dict:
+    wall, cpu, pairs, faults = (np.array(v) for v in zip(*samples))
+    return facts | dict(candidate_pairs=float(np.median(pairs)), seconds_per_step=float(np.median(wall)),
+                        cpu_seconds_per_step=float(np.median(cpu)), page_faults_per_step=int(np.median(faults)),
+                        load_average=os.getloadavg()[0], samples=samples)
+
+
+def time_policies(args, rounds: int = 2) -> dict:
+    """Rows "previous" (glibc's default policy) and "current" (host_memory's), each from `rounds`
+    child processes that time `args.steps` steps of the current config, alternating."""
+    samples, facts = {"previous": [], "current": []}, {}
+    for _ in range(rounds):
+        for name, opt_out in (("previous", "1"), ("current", "0")):
+            cmd = [sys.executable, __file__, "--child", "--steps", str(args.steps), "--scene", args.scene]
+            cmd += [flag for flag, value in (("--config", args.config), ("--checkpoint", args.checkpoint)) if value
+                    for flag in (flag, value)]
+            out = subprocess.run(cmd, env=dict(os.environ, **{host_memory.OPT_OUT: opt_out}), check=True,
+                                 capture_output=True, text=True).stdout
+            row = json.loads(out.strip().splitlines()[-1])
+            samples[name] += row.pop("samples")
+            facts[name] = {k: row[k] for k in ("step", "surfels", "pool", "pair_capacity")} | dict(
+                peak_rss_mb=max(row["peak_rss_mb"], facts.get(name, {}).get("peak_rss_mb", 0.0)))
+    return {name: _row(facts[name], samples[name]) for name in samples}
 
 
 def main(argv=None) -> int:
@@ -91,25 +133,33 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", help="start from this training checkpoint (else from initialisation)")
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
-    ap.add_argument("--compare", choices=("raster", "pool"), default="raster",
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc"), default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
-                         "against the same state compacted to its live surfels")
+                         "against the same state compacted to its live surfels; malloc: glibc's default "
+                         "allocation policy against host_memory's")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
     dataset = load_training_data(config)
     checkpoint = Path(args.checkpoint) if args.checkpoint else None
-    transforms, previous = {}, PREVIOUS
-    if args.compare == "pool":
+    if args.child:  # one policy, set by the parent's environment; prints the row as JSON
+        host_memory.reuse_freed_memory()
+        row = time_steps({"current": config}, dataset, checkpoint, args.steps)["current"]
+        print(json.dumps(row | dict(peak_rss_mb=_peak_rss_mb())))
+        return 0
+    if args.compare == "malloc":
+        rows, previous = time_policies(args), "glibc's default allocation policy"
+    elif args.compare == "pool":
         variants = {"previous": config, "current": config}
-        transforms = {"current": fit_pool}
+        rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": fit_pool})
         previous = "the checkpoint's surfel pool as it grew"
     else:
         variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
-    rows = time_steps(variants, dataset, checkpoint, args.steps, transforms)
+        rows, previous = time_steps(variants, dataset, checkpoint, args.steps), PREVIOUS
     window = dict(rows=rows, speedup=rows["previous"]["seconds_per_step"] / rows["current"]["seconds_per_step"],
                   cpu_speedup=rows["previous"]["cpu_seconds_per_step"] / rows["current"]["cpu_seconds_per_step"],
-                  exp_rate_per_s=exp_rate(), peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  exp_rate_per_s=exp_rate(), peak_rss_mb=_peak_rss_mb(),
                   image=[dataset.train[0].camera.width, dataset.train[0].camera.height], steps_timed=args.steps,
                   compare=args.compare, previous_settings=previous, current_settings=dataclasses.asdict(config.raster))
     label = args.label or f"{Path(config.data).name}@{rows['current']['step']}"
@@ -135,7 +185,7 @@ def chart(windows: dict, path: Path) -> None:
     ax.set_xticks(x, [textwrap.fill(k, 24) + f"\n{windows[k]['rows']['current']['surfels']} surfels" for k in labels],
                   fontsize=7)
     ax.set_ylabel("seconds per training step (median)")
-    ax.set_title("Training step on a 2-core CPU: previous vs current (rasterizer, or surfel pool)")
+    ax.set_title("Training step on a 2-core CPU: previous vs current (rasterizer, surfel pool or malloc policy)")
     ax.legend()
     fig.tight_layout()
     save_figure(fig, path)

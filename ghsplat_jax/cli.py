@@ -12,6 +12,8 @@ import os
 import sys
 from pathlib import Path
 
+from ghsplat_jax.host_memory import reuse_freed_memory
+
 COMMANDS = {
     "demo": "ghsplat_jax.commands.demo",
     "render": "ghsplat_jax.commands.render",
@@ -65,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = _available()
     args = build_parser(commands).parse_args(argv)
     _enable_compilation_cache()
+    reuse_freed_memory()
     try:
         return int(args._module.main(args) or 0)
     except KeyboardInterrupt:
