@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.host_memory import reuse_freed_memory
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
@@ -299,9 +300,11 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
           until: int | None = None) -> TrainResult:
     """Train (or resume) a run into `out_dir`; see the module docstring. Ctrl-C (or SIGTERM)
     saves a checkpoint and raises KeyboardInterrupt. `until`: stop after that step with a
-    checkpoint (no point_cloud.ply), to be resumed later."""
+    checkpoint (no point_cloud.ply), to be resumed later. Sets the process's host memory policy
+    (`host_memory.reuse_freed_memory`), as the `ghsplat` command does."""
     from tqdm.auto import tqdm
 
+    reuse_freed_memory()
     config = config.resolved()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
