@@ -282,3 +282,41 @@ def test_chain_segments_inside_larger_ones_are_dropped():
     big, inside, other = views(range(8)), views(range(3, 6)), views(range(6, 11))
     kept = dis.distinct_segments([inside, other, big])
     assert [sorted(s.world_to_cam) for s in kept] == [list(range(8)), [6, 7, 8, 9, 10]]
+
+
+def _turned(w2c, deg):
+    """The camera yawed about its own y axis by `deg`, centre kept."""
+    a = np.radians(deg)
+    r = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ w2c[:, :3]
+    centre = -w2c[:, :3].T @ w2c[:, 3]
+    return np.column_stack([r, -r @ centre])
+
+
+def test_the_chain_is_cut_where_a_link_disagrees_with_its_own_matches():
+    pytest.importorskip("cv2")
+    graph, poses = _walk(n=12)
+    opts = dis.DisambiguateOptions(max_link_rotation_deg=3.0)
+    # exact poses: no link disagrees, one piece
+    assert [sorted(s.world_to_cam) for s in dis.cut_links(graph, [_model(poses)], opts)] == [list(range(12))]
+    assert folds.link_rotation_error(graph, _model(poses), (4, 5)) == pytest.approx(0.0, abs=0.1)
+    # view 6 placed turned by 5 degrees: both of its links disagree, so it is cut out, and the
+    # pieces keep only views that their own matches confirm
+    bent = [_turned(p, 5.0) if k == 6 else p for k, p in enumerate(poses)]
+    assert folds.link_rotation_error(graph, _model(bent), (5, 6)) == pytest.approx(5.0, abs=0.2)
+    pieces = dis.cut_links(graph, [_model(bent)], opts)
+    assert [sorted(s.world_to_cam) for s in pieces] == [list(range(6)), list(range(7, 12))]
+    # a gap in the capture order (view 2 not registered) also cuts; pieces under 3 views go
+    gap = ModelPoses({k: p for k, p in enumerate(poses) if k != 2}, _model(poses).normalise, _model(poses).focal)
+    assert [sorted(s.world_to_cam) for s in dis.cut_links(graph, [gap], opts)] == [list(range(3, 12))]
+
+
+def test_views_the_order_filters_chain_placed_count_as_verified():
+    graph, poses = _walk(n=12)
+    options = folds.FoldOptions(min_segment=4)
+    distant = dataclasses.replace(graph, pairs={p: m for p, m in graph.pairs.items() if p[1] - p[0] > 1 or p[0] < 7})
+    # the fold check's chain reached views 0-7 only: views 8-11 were placed through distant pairs
+    alone = folds.chain_consistency(_model(poses), [_model(poses[:8])], graph, options, distant)
+    assert alone["num_unverified"] == 4
+    reached = folds.chain_consistency(_model(poses), [_model(poses[:8])], graph, options, distant,
+                                      reached=set(range(6, 12)))
+    assert reached["num_unverified"] == 0

@@ -143,6 +143,19 @@ def relative_rotation(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, int
     return r
 
 
+def link_rotation_error(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, int]) -> float | None:
+    """Degrees between the pair's relative rotation in the model and the one its own matches
+    give (None: the pair cannot be measured, or an image is not registered)."""
+    i, j = pair
+    if i not in poses.world_to_cam or j not in poses.world_to_cam:
+        return None
+    measured = relative_rotation(graph, poses, pair)
+    if measured is None:
+        return None
+    model = poses.world_to_cam[j][:3, :3] @ poses.world_to_cam[i][:3, :3].T
+    return _angle_deg(measured @ model.T)
+
+
 def rotation_chain(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
     """Relative rotations of consecutive frames, chained along the capture order, against the
     model's; and the closing error of the loop when the last frame matches the first."""
@@ -187,10 +200,12 @@ def opposite_tracks(reconstruction, options: FoldOptions) -> dict:
 
 
 def chain_consistency(poses: ModelPoses, chain: list[ModelPoses], graph: MatchGraph,
-                      options: FoldOptions, mapped_graph: MatchGraph | None = None) -> dict:
+                      options: FoldOptions, mapped_graph: MatchGraph | None = None,
+                      reached: set[int] = frozenset()) -> dict:
     """Each chain segment (mapped from neighbour pairs only, so it cannot fold) against the
     model: camera-centre RMSE after a similarity alignment, as a fraction of the segment's
-    extent in the model, and the largest rotation difference."""
+    extent in the model, and the largest rotation difference. `reached`: views that neighbour
+    links placed besides the chain's (the order filter's own chain)."""
     from ghsplat_jax.sfm.evaluate import compare_poses
 
     segments = []
@@ -212,7 +227,7 @@ def chain_consistency(poses: ModelPoses, chain: list[ModelPoses], graph: MatchGr
     # on a self-similar row exactly the ones a look-alike match can misplace.
     # A view outside the chain whose mapped pairs are all neighbour pairs (the order filter
     # keeps no unverifiable distant pair) was placed by neighbours after all.
-    reached = set().union(*(set(s.world_to_cam) for s in chain)) if chain else set()
+    reached = set(reached).union(*(set(s.world_to_cam) for s in chain))
     mapped = (mapped_graph or graph).pairs
     distant = {k for p in mapped if graph.order_distance(*p, cyclic=options.cyclic) > options.window
                and p[0] in poses.world_to_cam and p[1] in poses.world_to_cam for k in p}
@@ -238,9 +253,9 @@ def graph_components(graph: MatchGraph) -> list[int]:
 
 def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, reconstruction,
              options: FoldOptions, capture_order: bool, num_models: int,
-             chain: list[ModelPoses] | None = None) -> dict:
+             chain: list[ModelPoses] | None = None, reached: set[int] = frozenset()) -> dict:
     """All fold diagnostics. `graph`: every verified pair; `mapped_graph`: the pairs the mapper
-    was given (the same unless a filter dropped some)."""
+    was given (the same unless a filter dropped some); `reached`: as chain_consistency."""
     report = {"capture_order": capture_order, "window": options.window, "cyclic": options.cyclic}
     reasons = []
     if capture_order:
@@ -256,7 +271,7 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
                            f"drift {chained['max_drift_deg']:.0f} degrees from the model's (more than "
                            f"{options.max_rotation_drift_deg:g})")
     if chain is not None:  # an empty chain (nothing mapped from neighbours alone) confirms no view
-        consistency = chain_consistency(poses, chain, graph, options, mapped_graph)
+        consistency = chain_consistency(poses, chain, graph, options, mapped_graph, reached)
         report["chain_consistency"] = consistency
         if consistency["num_inconsistent"]:
             reasons.append(f"{consistency['num_inconsistent']} of {consistency['num_segments']} segments "

@@ -56,6 +56,11 @@ class SfmError(RuntimeError):
     """Bad input or an unusable pipeline setting; the message names the file and the problem."""
 
 
+# A second-pass model with fewer views maps nothing of the row (the order filter's map, which
+# registers from fewer inliers, can keep a lone initial pair): the first model stays.
+MIN_MODEL_VIEWS = 3
+
+
 @dataclasses.dataclass
 class SfmOptions:
     matching: str = "exhaustive"  # every pair, as the paper does; "sequential" for video
@@ -244,8 +249,10 @@ def match(database: Path, options: SfmOptions) -> None:
         pycolmap.match_spatial(database, **common)
 
 
-def map_images(database: Path, root: Path, models_dir: Path, options: SfmOptions) -> dict:
-    """All reconstructions the mapper produced, {index: Reconstruction}."""
+def map_images(database: Path, root: Path, models_dir: Path, options: SfmOptions, filtered: bool = False) -> dict:
+    """All reconstructions the mapper produced, {index: Reconstruction}. `filtered`: the
+    database holds only the order filter's trusted and verified pairs, so the incremental
+    mapper registers views from fewer inliers (DisambiguateOptions.min_pose_inliers)."""
     import pycolmap
 
     pycolmap.set_random_seed(options.seed)
@@ -255,6 +262,9 @@ def map_images(database: Path, root: Path, models_dir: Path, options: SfmOptions
         pipeline = pycolmap.IncrementalPipelineOptions()
         pipeline.num_threads = options.num_threads
         pipeline.random_seed = options.seed
+        if filtered:
+            pipeline.mapper.abs_pose_min_num_inliers = options.disambiguate_options.min_pose_inliers
+            pipeline.mapper.abs_pose_min_inlier_ratio = options.disambiguate_options.min_pose_inlier_ratio
         return pycolmap.incremental_mapping(database, root, models_dir, options=pipeline)
     if not hasattr(pycolmap, "global_mapping"):
         raise SfmError(
@@ -322,32 +332,40 @@ def undistort(model_dir: Path, root: Path, out: Path, options: SfmOptions) -> No
     shutil.rmtree(tmp, ignore_errors=True)  # stereo/ and scripts are for COLMAP's MVS
 
 
-def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions) -> list[ModelPoses]:
+def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions,
+              verify: bool = False) -> list[ModelPoses]:
     """The chain: segments mapped from the trusted neighbour pairs alone (largest first, none
     a subset of another). It cannot fold (no look-alike pair between distant frames reaches
-    it); it may break where neighbours share too little, hence segments."""
+    it); it may break where neighbours share too little, hence segments. The fold check reads
+    it as COLMAP maps it. `verify`: the order filter's chain, which registers views from fewer
+    inliers and is cut at links that disagree with their own matches (longer segments verify
+    more pairs, but cut into smaller pieces they hid a fold from the fold check)."""
     distorted = database.parent
     chain_db = distorted / "chain.db"
-    keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, options.disambiguate_options))
-    models = map_images(chain_db, root, distorted / "chain_models", options)
+    opts = options.disambiguate_options
+    keep_pairs(database, chain_db, graph, dis.sequential_pairs(graph, opts))
+    models = map_images(chain_db, root, distorted / "chain_models", options, filtered=verify)
     shutil.rmtree(distorted / "chain_models", ignore_errors=True)
     chain_db.unlink(missing_ok=True)
-    return dis.distinct_segments([model_poses(r, graph) for r in models.values()])
+    segments = [model_poses(r, graph) for r in models.values()]
+    return dis.cut_links(graph, segments, opts) if verify else dis.distinct_segments(segments)
 
 
-def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
-                 chain: list[ModelPoses] | None) -> tuple[Path, dict, dict]:
-    """(database to map from, disambiguation report, {pair kept: the matches the mapper sees})
-    for `method` (order, tracks)."""
+def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str,
+                 options: SfmOptions) -> tuple[Path, dict, dict, set[int]]:
+    """(database to map from, disambiguation report, {pair kept: the matches the mapper sees},
+    views the order filter's chain placed) for `method` (order, tracks)."""
     opts = options.disambiguate_options
-    narrowed = None
+    narrowed, placed = None, set()
     if method == "tracks":
         keep, info = dis.track_filter(graph, opts)
     else:  # "order": trust the neighbour pairs, verify the others (match by match) against the chain
-        keep, info, narrowed = dis.order_filter(graph, chain or [], opts)
+        chain = map_chain(database, root, graph, options, verify=True)
+        keep, info, narrowed = dis.order_filter(graph, chain, opts)
+        placed = set().union(*(set(s.world_to_cam) for s in chain))
     filtered = database.parent / "database_filtered.db"
     info["num_pairs_removed"] = keep_pairs(database, filtered, graph, keep, narrowed)
-    return filtered, info, {p: (narrowed or {}).get(p, graph.pairs[p]) for p in keep}
+    return filtered, info, {p: (narrowed or {}).get(p, graph.pairs[p]) for p in keep}, placed
 
 
 @dataclasses.dataclass
@@ -368,17 +386,30 @@ def _fold_options(options: SfmOptions) -> folds.FoldOptions:
 def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
                   models_dir: Path, chain: list[ModelPoses] | None) -> Mapped:
     """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics."""
-    mapped_graph, mapping_db, info = graph, database, {"method": "none"}
+    mapped_graph, mapping_db, info, placed = graph, database, {"method": "none"}, set()
     if method != "none":
-        mapping_db, info, mapped_pairs = filter_pairs(database, root, graph, method, options, chain)
+        mapping_db, info, mapped_pairs, placed = filter_pairs(database, root, graph, method, options)
         mapped_graph = dataclasses.replace(graph, pairs=mapped_pairs)
-    models = map_images(mapping_db, root, models_dir, options)
-    best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-    diagnostics = None
-    if best is not None:
-        diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, _fold_options(options),
-                                     capture_order=options.capture_order == "name", num_models=len(models),
-                                     chain=chain)
+
+    def attempt(filtered: bool):
+        models = map_images(mapping_db, root, models_dir, options, filtered=filtered)
+        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        if best is None:
+            return models, None, None
+        return models, best, folds.diagnose(
+            graph, mapped_graph, model_poses(best, graph), best, _fold_options(options),
+            capture_order=options.capture_order == "name", num_models=len(models), chain=chain, reached=placed)
+
+    models, best, diagnostics = attempt(filtered=method == "order")
+    if method == "order" and (best is None or best.num_reg_images() < MIN_MODEL_VIEWS
+                              or diagnostics["fold_suspected"]):
+        # Registering from fewer inliers placed more of every hand-held loop, but on a
+        # video-rate walk it let in views that bent the map (4.4%, flagged), and where nothing
+        # chains it keeps a lone initial pair: map again at COLMAP's thresholds, as before.
+        info["first_mapping"] = {"min_pose_inliers": options.disambiguate_options.min_pose_inliers,
+                                 "num_registered": 0 if best is None else best.num_reg_images(),
+                                 "reasons": [] if best is None else diagnostics["reasons"]}
+        models, best, diagnostics = attempt(filtered=False)
     return Mapped(models, best, info, diagnostics, graph)
 
 
@@ -390,7 +421,7 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     graph = read_match_graph(database, names)
     models_dir = distorted / "models"
     chain = None
-    if options.capture_order == "name" and (options.fold_check or options.disambiguate in ("auto", "order")):
+    if options.capture_order == "name" and options.fold_check:
         with _timed(timings, "chain"):
             chain = map_chain(database, root, graph, options)
     first = "none" if options.disambiguate == "auto" else options.disambiguate
@@ -410,7 +441,7 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     with _timed(timings, "disambiguation"):
         second = map_and_check(database, root, graph, fallback, options, distorted / "models_filtered", chain)
     shutil.rmtree(distorted / "models_filtered", ignore_errors=True)
-    if second.best is None:  # nothing better: keep the flagged first model
+    if second.best is None or second.best.num_reg_images() < MIN_MODEL_VIEWS:  # nothing better: keep the flagged first model
         result.disambiguation = {**summary, "used": "none", "fallback": second.disambiguation}
         return result
     second.disambiguation = {**summary, "used": fallback, "fallback": second.disambiguation}
