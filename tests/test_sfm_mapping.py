@@ -21,7 +21,7 @@ class _Model:
 
 def _run(monkeypatch, flag_relaxed: bool, method: str = "order", relaxed_views: int = 30):
     graph = MatchGraph([f"{k}.png" for k in range(4)], [1, 2, 3, 4], [1] * 4, [np.zeros((0, 2))] * 4, {})
-    calls = []
+    calls, filters = [], []
 
     def map_images(database, root, models_dir, options, filtered=False):
         calls.append(filtered)
@@ -32,10 +32,13 @@ def _run(monkeypatch, flag_relaxed: bool, method: str = "order", relaxed_views: 
         return {"fold_suspected": flagged, "reasons": ["bent"] if flagged else []}
 
     monkeypatch.setattr(pipeline, "map_images", map_images)
-    monkeypatch.setattr(pipeline, "filter_pairs", lambda *a: (Path("f.db"), {"method": method}, {}, set()))
+    monkeypatch.setattr(pipeline, "filter_pairs",
+                        lambda *a: (filters.append(a[-1]), (Path("f.db"), {"method": method}, {}, set()))[1])
     monkeypatch.setattr(pipeline.folds, "diagnose", diagnose)
     monkeypatch.setattr(pipeline, "model_poses", lambda best, graph: None)
     mapped = pipeline.map_and_check(Path("d.db"), Path("."), graph, method, pipeline.SfmOptions(), Path("m"), None)
+    if method != "none":
+        assert filters == calls  # the filter's chain and the map are relaxed together
     return mapped, calls
 
 

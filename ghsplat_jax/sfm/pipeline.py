@@ -351,16 +351,17 @@ def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions
     return dis.cut_links(graph, segments, opts) if verify else dis.distinct_segments(segments)
 
 
-def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str,
-                 options: SfmOptions) -> tuple[Path, dict, dict, set[int]]:
+def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
+                 relaxed: bool = False) -> tuple[Path, dict, dict, set[int]]:
     """(database to map from, disambiguation report, {pair kept: the matches the mapper sees},
-    views the order filter's chain placed) for `method` (order, tracks)."""
+    views the order filter's chain placed) for `method` (order, tracks). `relaxed`: the order
+    filter's chain registers from fewer inliers and is cut at disagreeing links."""
     opts = options.disambiguate_options
     narrowed, placed = None, set()
     if method == "tracks":
         keep, info = dis.track_filter(graph, opts)
     else:  # "order": trust the neighbour pairs, verify the others (match by match) against the chain
-        chain = map_chain(database, root, graph, options, verify=True)
+        chain = map_chain(database, root, graph, options, verify=relaxed)
         keep, info, narrowed = dis.order_filter(graph, chain, opts)
         placed = set().union(*(set(s.world_to_cam) for s in chain))
     filtered = database.parent / "database_filtered.db"
@@ -385,31 +386,38 @@ def _fold_options(options: SfmOptions) -> folds.FoldOptions:
 
 def map_and_check(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
                   models_dir: Path, chain: list[ModelPoses] | None) -> Mapped:
-    """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics."""
+    """Filter pairs with `method` (none, order, tracks), map, and run the fold diagnostics.
+    The order filter first registers views from fewer inliers, in its chain and in its map;
+    when the fold check flags that model, or it has under MIN_MODEL_VIEWS views, the filter
+    and the map run again at COLMAP's thresholds (the filter as it was before)."""
+    relaxed = method == "order"
+    mapped = _map_once(database, root, graph, method, options, models_dir, chain, relaxed)
+    if relaxed and (mapped.best is None or mapped.best.num_reg_images() < MIN_MODEL_VIEWS
+                    or mapped.diagnostics["fold_suspected"]):
+        # It placed more of every hand-held loop, but on a video-rate walk it let in views that
+        # bent the map (4.4%, flagged), round one row end its map came out 21.8% off (flagged;
+        # its 60-view chain was within 1.4%), and where nothing chains it keeps a lone initial pair.
+        first = {"min_pose_inliers": options.disambiguate_options.min_pose_inliers,
+                 "num_registered": 0 if mapped.best is None else mapped.best.num_reg_images(),
+                 "reasons": [] if mapped.best is None else mapped.diagnostics["reasons"]}
+        mapped = _map_once(database, root, graph, method, options, models_dir, chain, relaxed=False)
+        mapped.disambiguation["first_mapping"] = first
+    return mapped
+
+
+def _map_once(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
+              models_dir: Path, chain: list[ModelPoses] | None, relaxed: bool) -> Mapped:
     mapped_graph, mapping_db, info, placed = graph, database, {"method": "none"}, set()
     if method != "none":
-        mapping_db, info, mapped_pairs, placed = filter_pairs(database, root, graph, method, options)
+        mapping_db, info, mapped_pairs, placed = filter_pairs(database, root, graph, method, options, relaxed)
         mapped_graph = dataclasses.replace(graph, pairs=mapped_pairs)
-
-    def attempt(filtered: bool):
-        models = map_images(mapping_db, root, models_dir, options, filtered=filtered)
-        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-        if best is None:
-            return models, None, None
-        return models, best, folds.diagnose(
-            graph, mapped_graph, model_poses(best, graph), best, _fold_options(options),
-            capture_order=options.capture_order == "name", num_models=len(models), chain=chain, reached=placed)
-
-    models, best, diagnostics = attempt(filtered=method == "order")
-    if method == "order" and (best is None or best.num_reg_images() < MIN_MODEL_VIEWS
-                              or diagnostics["fold_suspected"]):
-        # Registering from fewer inliers placed more of every hand-held loop, but on a
-        # video-rate walk it let in views that bent the map (4.4%, flagged), and where nothing
-        # chains it keeps a lone initial pair: map again at COLMAP's thresholds, as before.
-        info["first_mapping"] = {"min_pose_inliers": options.disambiguate_options.min_pose_inliers,
-                                 "num_registered": 0 if best is None else best.num_reg_images(),
-                                 "reasons": [] if best is None else diagnostics["reasons"]}
-        models, best, diagnostics = attempt(filtered=False)
+    models = map_images(mapping_db, root, models_dir, options, filtered=relaxed)
+    best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    diagnostics = None
+    if best is not None:
+        diagnostics = folds.diagnose(graph, mapped_graph, model_poses(best, graph), best, _fold_options(options),
+                                     capture_order=options.capture_order == "name", num_models=len(models),
+                                     chain=chain, reached=placed)
     return Mapped(models, best, info, diagnostics, graph)
 
 
