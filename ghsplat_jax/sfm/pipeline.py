@@ -56,8 +56,9 @@ class SfmError(RuntimeError):
     """Bad input or an unusable pipeline setting; the message names the file and the problem."""
 
 
-# A second-pass model with fewer views maps nothing of the row (the order filter's map, which
-# registers from fewer inliers, can keep a lone initial pair): the first model stays.
+# A model of fewer views maps nothing of the row (a map that registers from fewer inliers can
+# keep a lone initial pair): the order filter's relaxed pass is redone, and `auto` keeps its
+# first model rather than such a second one.
 MIN_MODEL_VIEWS = 3
 
 
