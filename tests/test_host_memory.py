@@ -1,5 +1,6 @@
 """The host memory policy: freed large blocks are reused without new page faults."""
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -25,7 +26,6 @@ PROBE = textwrap.dedent("""
 
 
 def _probe(env_extra: dict) -> tuple[bool, int]:
-    import os
     env = dict(os.environ, **env_extra)
     out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=env, check=True)
     applied, faults = out.stdout.split()

@@ -33,7 +33,7 @@ def _run(monkeypatch, flag_relaxed: bool, method: str = "order", relaxed_views: 
 
     monkeypatch.setattr(pipeline, "map_images", map_images)
     monkeypatch.setattr(pipeline, "filter_pairs",
-                        lambda *a: (filters.append(a[-1]), (Path("f.db"), {"method": method}, {}, set()))[1])
+                        lambda *a: (filters.append(a[5]), (Path("f.db"), {"method": method}, {}, set()))[1])
     monkeypatch.setattr(pipeline.folds, "diagnose", diagnose)
     monkeypatch.setattr(pipeline, "model_poses", lambda best, graph: None)
     mapped = pipeline.map_and_check(Path("d.db"), Path("."), graph, method, pipeline.SfmOptions(), Path("m"), None)

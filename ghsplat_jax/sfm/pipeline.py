@@ -353,16 +353,18 @@ def map_chain(database: Path, root: Path, graph: MatchGraph, options: SfmOptions
 
 
 def filter_pairs(database: Path, root: Path, graph: MatchGraph, method: str, options: SfmOptions,
-                 relaxed: bool = False) -> tuple[Path, dict, dict, set[int]]:
+                 relaxed: bool = False, chain: list[ModelPoses] | None = None) -> tuple[Path, dict, dict, set[int]]:
     """(database to map from, disambiguation report, {pair kept: the matches the mapper sees},
     views the order filter's chain placed) for `method` (order, tracks). `relaxed`: the order
-    filter's chain registers from fewer inliers and is cut at disagreeing links."""
+    filter's chain registers from fewer inliers and is cut at disagreeing links; otherwise it
+    is COLMAP's chain, `chain` when the fold check has mapped it already."""
     opts = options.disambiguate_options
     narrowed, placed = None, set()
     if method == "tracks":
         keep, info = dis.track_filter(graph, opts)
     else:  # "order": trust the neighbour pairs, verify the others (match by match) against the chain
-        chain = map_chain(database, root, graph, options, verify=relaxed)
+        if relaxed or chain is None:
+            chain = map_chain(database, root, graph, options, verify=relaxed)
         keep, info, narrowed = dis.order_filter(graph, chain, opts)
         placed = set().union(*(set(s.world_to_cam) for s in chain))
     filtered = database.parent / "database_filtered.db"
@@ -410,7 +412,7 @@ def _map_once(database: Path, root: Path, graph: MatchGraph, method: str, option
               models_dir: Path, chain: list[ModelPoses] | None, relaxed: bool) -> Mapped:
     mapped_graph, mapping_db, info, placed = graph, database, {"method": "none"}, set()
     if method != "none":
-        mapping_db, info, mapped_pairs, placed = filter_pairs(database, root, graph, method, options, relaxed)
+        mapping_db, info, mapped_pairs, placed = filter_pairs(database, root, graph, method, options, relaxed, chain)
         mapped_graph = dataclasses.replace(graph, pairs=mapped_pairs)
     models = map_images(mapping_db, root, models_dir, options, filtered=relaxed)
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
