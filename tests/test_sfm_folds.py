@@ -320,3 +320,16 @@ def test_views_the_order_filters_chain_placed_count_as_verified():
     reached = folds.chain_consistency(_model(poses), [_model(poses[:8])], graph, options, distant,
                                       reached=set(range(6, 12)))
     assert reached["num_unverified"] == 0
+
+
+def test_a_model_is_split_at_the_seams_its_neighbour_pairs_contradict():
+    graph, poses = _walk(n=12)
+    options = folds.FoldOptions()
+    assert folds.seam_pieces(graph, _model(poses), options) == [list(range(12))]
+    # views 0-3 placed 2 m further along the row (a look-alike plant matched): their own pairs
+    # still agree, the pair (3, 4) does not, so the model splits there
+    shifted = [_look_y(k * 0.4 + 2.0) if k < 4 else p for k, p in enumerate(poses)]
+    assert folds.seam_pieces(graph, _model(shifted), options) == [list(range(4, 12)), [0, 1, 2, 3]]
+    # in a closed walk the ends are neighbours: with no seam between them it is one piece
+    loop = folds.FoldOptions(cyclic=True)
+    assert folds.seam_pieces(graph, _model(shifted), loop) == [list(range(4, 12)) + [0, 1, 2, 3]]

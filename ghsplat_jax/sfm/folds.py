@@ -61,24 +61,47 @@ def _angle_deg(r: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
 
 
+def _neighbour_agreement(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
+    """{neighbour pair: fraction of its matches the model's poses explain}, for the pairs
+    within the window that can be measured."""
+    scores = {pair: pair_agreement(graph, poses, pair, options.agree_angle_deg) for pair in sorted(graph.pairs)
+              if graph.order_distance(*pair, cyclic=options.cyclic) <= options.window}
+    return {pair: a for pair, a in scores.items() if a is not None}
+
+
 def neighbour_contradictions(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
     """Neighbour pairs whose matches the model's poses do not explain."""
-    checked, contradicted = 0, []
-    for pair in sorted(graph.pairs):
-        if graph.order_distance(*pair, cyclic=options.cyclic) > options.window:
-            continue
-        agreement = pair_agreement(graph, poses, pair, options.agree_angle_deg)
-        if agreement is None:
-            continue
-        checked += 1
-        if agreement < options.min_agreement:
-            contradicted.append((pair, agreement))
+    scores = _neighbour_agreement(graph, poses, options)
+    checked = len(scores)
+    contradicted = [(pair, a) for pair, a in scores.items() if a < options.min_agreement]
     return {
         "num_checked": checked,
         "num_contradicted": len(contradicted),
         "fraction_contradicted": round(len(contradicted) / checked, 4) if checked else 0.0,
         "contradicted": [[graph.names[i], graph.names[j], round(a, 3)] for (i, j), a in contradicted[:20]],
     }
+
+
+def seam_pieces(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> list[list[int]]:
+    """The registered views in capture order, split at the seams a fold leaves (consecutive
+    views whose neighbour pair the model contradicts), largest piece first. Only measured
+    contradictions split; in a closed walk the first and last pieces join across the ends
+    unless that pair is contradicted too."""
+    views = sorted(poses.world_to_cam)
+    if not views:
+        return []
+    seams = {pair for pair, a in _neighbour_agreement(graph, poses, options).items() if a < options.min_agreement}
+    pieces = [[views[0]]]
+    for a, b in zip(views, views[1:]):
+        if (a, b) in seams:
+            pieces.append([b])
+        else:
+            pieces[-1].append(b)
+    ends = (views[0], views[-1])
+    if (options.cyclic and len(pieces) > 1 and graph.order_distance(*ends, cyclic=True) <= options.window
+            and ends not in seams):
+        pieces[0] = pieces.pop() + pieces[0]
+    return sorted(pieces, key=len, reverse=True)
 
 
 def long_range_contradictions(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:

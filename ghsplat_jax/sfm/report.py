@@ -138,6 +138,10 @@ def _fold_lines(report: dict) -> list[str]:
         lines.append(f"Pair filter {dis['method']}: {dis.get('num_pairs_removed', 0)} of "
                      f"{dis.get('num_pairs', 0)} verified pairs left out.")
     diag = report.get("fold_diagnostics")
+    if diag and diag.get("trimmed_at_seams"):
+        cut = diag["trimmed_at_seams"]
+        lines.append(f"The model looked folded ({'; '.join(cut['reasons_before'])}); cut at its seams, "
+                     f"{len(cut['dropped'])} views left out, the rest passes the fold check.")
     if diag:
         neighbours = diag.get("neighbour_pairs")
         if neighbours:
