@@ -29,7 +29,7 @@ import dataclasses
 
 import numpy as np
 
-from ghsplat_jax.sfm.folds import link_rotation_error
+from ghsplat_jax.sfm.folds import link_rotation_error, split_runs
 from ghsplat_jax.sfm.matchgraph import MatchGraph, ModelPoses, agreeing_matches
 
 METHODS = ("auto", "order", "tracks", "none")
@@ -99,14 +99,11 @@ def cut_links(graph: MatchGraph, segments: list[ModelPoses], options: Disambigua
     trusted = sequential_pairs(graph, options)
     pieces = []
     for segment in segments:
-        views = sorted(segment.world_to_cam)
-        runs = [[views[0]]]
-        for a, b in zip(views, views[1:]):
+        def agrees(a, b, segment=segment):
             error = link_rotation_error(graph, segment, (a, b)) if (a, b) in trusted else None
-            if error is not None and error <= options.max_link_rotation_deg:
-                runs[-1].append(b)
-            else:
-                runs.append([b])
+            return error is not None and error <= options.max_link_rotation_deg
+
+        runs = split_runs(sorted(segment.world_to_cam), agrees)
         pieces += [ModelPoses({k: segment.world_to_cam[k] for k in run}, segment.normalise, segment.focal)
                    for run in runs if len(run) >= min_views]
     return distinct_segments(pieces)

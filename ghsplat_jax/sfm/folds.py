@@ -82,6 +82,17 @@ def neighbour_contradictions(graph: MatchGraph, poses: ModelPoses, options: Fold
     }
 
 
+def split_runs(views: list[int], joined) -> list[list[int]]:
+    """`views` (sorted) split into runs of consecutive entries a, b for which joined(a, b)."""
+    runs = [[views[0]]] if views else []
+    for a, b in zip(views, views[1:]):
+        if joined(a, b):
+            runs[-1].append(b)
+        else:
+            runs.append([b])
+    return runs
+
+
 def seam_pieces(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> list[list[int]]:
     """The registered views in capture order, split at the seams a fold leaves (consecutive
     views whose neighbour pair the model contradicts), largest piece first. Only measured
@@ -91,12 +102,7 @@ def seam_pieces(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> l
     if not views:
         return []
     seams = {pair for pair, a in _neighbour_agreement(graph, poses, options).items() if a < options.min_agreement}
-    pieces = [[views[0]]]
-    for a, b in zip(views, views[1:]):
-        if (a, b) in seams:
-            pieces.append([b])
-        else:
-            pieces[-1].append(b)
+    pieces = split_runs(views, lambda a, b: (a, b) not in seams)
     ends = (views[0], views[-1])
     if (options.cyclic and len(pieces) > 1 and graph.order_distance(*ends, cyclic=True) <= options.window
             and ends not in seams):

@@ -448,12 +448,7 @@ def trim_at_seams(model, graph: MatchGraph, diagnostics: dict, options: SfmOptio
         return None
     keep = {graph.names[k] for k in pieces[0]}
     trimmed = pycolmap.Reconstruction(model)
-    dropped = []
-    for image_id in list(trimmed.reg_image_ids()):
-        image = trimmed.images[image_id]
-        if image.name not in keep:
-            trimmed.deregister_frame(image.frame_id)
-            dropped.append(image.name)
+    dropped = _deregister(trimmed, lambda name: name not in keep)
     checked = diagnose(trimmed)
     # Passing the checks is not enough: a plain model of five identical plants, 44.6% off, had
     # a single contradicted pair, and the 35 views past it passed every check, placed by two
@@ -463,7 +458,7 @@ def trim_at_seams(model, graph: MatchGraph, diagnostics: dict, options: SfmOptio
     covered = max((s["num_images"] for s in segments), default=0)
     if checked["fold_suspected"] or covered < MIN_TRIM_CHAIN_FRACTION * trimmed.num_reg_images():
         return None
-    checked["trimmed_at_seams"] = {"dropped": sorted(dropped), "reasons_before": diagnostics["reasons"]}
+    checked["trimmed_at_seams"] = {"dropped": dropped, "reasons_before": diagnostics["reasons"]}
     return trimmed, checked
 
 
@@ -484,16 +479,15 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     if options.disambiguate != "auto":
         return result
     flagged = result.best is None or result.diagnostics["fold_suspected"]
-    trimmed = not flagged and "trimmed_at_seams" in result.diagnostics
+    cut = None if result.best is None else result.diagnostics.get("trimmed_at_seams")  # a trimmed model is clean
     first_pass = {"num_registered": 0, "fold_suspected": None, "reasons": []}
     if result.best is not None:
-        cut = result.diagnostics.get("trimmed_at_seams")
-        first_pass = {"num_registered": result.best.num_reg_images(), "fold_suspected": flagged or trimmed,
+        first_pass = {"num_registered": result.best.num_reg_images(), "fold_suspected": flagged or cut is not None,
                       "reasons": cut["reasons_before"] if cut else result.diagnostics["reasons"]}
         if cut:
             first_pass["trimmed_at_seams"] = cut["dropped"]
     summary = {"method": "auto", "first_pass": first_pass}
-    if not flagged and not trimmed:
+    if not flagged and cut is None:
         result.disambiguation = {**summary, "used": "none"}
         return result
     # A flagged first model, or one that passed only once trimmed at its seams: the filter may
@@ -502,9 +496,11 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     with _timed(timings, "disambiguation"):
         second = map_and_check(database, root, graph, fallback, options, distorted / "models_filtered", chain)
     shutil.rmtree(distorted / "models_filtered", ignore_errors=True)
-    views = lambda mapped: 0 if mapped.best is None else mapped.best.num_reg_images()  # noqa: E731
-    if views(second) < MIN_MODEL_VIEWS or (trimmed and (second.diagnostics["fold_suspected"]
-                                                        or views(second) <= views(result))):
+    def views(mapped: Mapped) -> int:
+        return 0 if mapped.best is None else mapped.best.num_reg_images()
+
+    if views(second) < MIN_MODEL_VIEWS or (cut is not None and (second.diagnostics["fold_suspected"]
+                                                                or views(second) <= views(result))):
         # nothing better: keep the first model (flagged, or trimmed and clean)
         result.disambiguation = {**summary, "used": "none", "fallback": second.disambiguation}
         return result
@@ -512,14 +508,21 @@ def reconstruct(database: Path, root: Path, names: list[str], options: SfmOption
     return second
 
 
+def _deregister(reconstruction, drop) -> list[str]:
+    """Deregister (in place) the registered images for which drop(name) holds; their names."""
+    dropped = []
+    for image_id in list(reconstruction.reg_image_ids()):
+        image = reconstruction.images[image_id]
+        if drop(image.name):
+            reconstruction.deregister_frame(image.frame_id)
+            dropped.append(image.name)
+    return sorted(dropped)
+
+
 def drop_spikes(reconstruction, graph: MatchGraph, options: SfmOptions) -> list[str]:
     """Deregister the frames folds.spikes calls mis-registered (in place); their names."""
     bad = {graph.names[k] for k in folds.spikes(model_poses(reconstruction, graph), _fold_options(options))}
-    for image_id in list(reconstruction.reg_image_ids()):
-        image = reconstruction.images[image_id]
-        if image.name in bad:
-            reconstruction.deregister_frame(image.frame_id)
-    return sorted(bad)
+    return _deregister(reconstruction, bad.__contains__)
 
 
 # ---------------------------------------------------------------------------- the run
