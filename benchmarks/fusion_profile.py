@@ -1,4 +1,4 @@
-"""Per-op profile of a simulated camera frame on XLA:CPU: where the thread time goes.
+"""Per-op profile of a simulated camera frame, or of a training step, on XLA:CPU: where the thread time goes.
 
 Every compiled op (fusion, dot, sort, scatter) of the camera's program is timed with
 jax.profiler over a few frames and mapped to the source lines it came from (the compiled HLO's
@@ -8,8 +8,14 @@ intra-op parallelism can pay on this machine. This rasterizer's speed depends on
 choices, so a change in a JAX upgrade shows up here first.
 
     JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --surfels 100000 --frames 3
+    JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --train-run RUN [--label NAME]
 
 Writes benchmarks/results/fusion_profile.json. CPU only (it reads XLA:CPU's thread names).
+With `--train-run` (a run folder with config.toml and checkpoint.npz) it profiles real training
+steps from that checkpoint instead and adds a window to fusion_profile_step.json: thread time
+in the compositor's forward loop, its backward loop and the rest of the step (by source file),
+the loop iterations, the nanoseconds of thread time per evaluated pair-pixel in each pass beside
+the machine's fused exp rate measured in the same process, and how long one or both cores ran ops.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from __future__ import annotations
 import argparse
 import collections
 import glob
+import json
 import os
 import re
 import sys
@@ -32,6 +39,7 @@ import numpy as np
 from ghsplat_jax.io_utils import write_json
 from sim_speed import greenhouse_surfels  # noqa: E402  (benchmarks/ is the script's folder)
 
+DEFAULT_OUT = str(Path(__file__).parent / "results" / "fusion_profile.json")
 # XLA:CPU runs compiled ops on its intra-op pool, and small programs inline on the client's thread.
 OP_THREADS = ("tf_XLAEigen", "tf_XLAPjRtCpuClient")
 
@@ -124,6 +132,118 @@ def profile_camera(surfels: int, width: int, height: int, frames: int) -> dict:
                 busy_per_frame={k: v / frames for k, v in busy_threads(events).items()}, ops=ops)
 
 
+def _loop_bodies(hlo: str) -> dict[str, str]:
+    """{body computation: "forward" or "backward"} of the compositor's while loops in a compiled
+    training step (the backward is the one JAX emits under transpose())."""
+    out = {}
+    for line in hlo.splitlines():
+        m = re.search(r"while\(.*body=%([\w.\-]+).*op_name=\"([^\"]*)\"", line)
+        if m and m.group(2).endswith("/while"):
+            out[m.group(1)] = "backward" if "transpose(" in m.group(2) else "forward"
+    return out
+
+
+def _owners(hlo: str) -> dict[str, str]:
+    """{instruction name: the computation it sits in}."""
+    owner, current = {}, None
+    for line in hlo.splitlines():
+        head = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
+        if head and not line.startswith(" "):
+            current = head.group(1)
+            continue
+        m = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = ", line)
+        if m and current:
+            owner[m.group(1)] = current
+    return owner
+
+
+def profile_training_step(run_dir: Path, steps: int) -> dict:
+    """Thread time of real training steps from a run's checkpoint, split by compositor loop."""
+    import jax.numpy as jnp
+    from ghsplat_jax import host_memory
+    from ghsplat_jax.train.config import load_config
+    from ghsplat_jax.train.run_dir import load_training_data
+    from ghsplat_jax.train.trainer import step_raster_config, view_order
+    from raster_speed import exp_rate
+    from train_speed import _session
+
+    host_memory.reuse_freed_memory()  # as `ghsplat train` runs
+    config = load_config(run_dir / "config.toml")
+    session = _session(config, load_training_data(config), run_dir / "checkpoint.npz")
+    state0, step0 = session.state, int(session.state.step)
+
+    def run(k):
+        session.state = state0
+        t, c = time.perf_counter(), time.process_time()
+        metrics = session.step(step0 + k)
+        jax.block_until_ready(session.state.params.means)
+        return time.perf_counter() - t, time.process_time() - c, metrics
+
+    for k in range(steps):  # pair capacities settle (a grown buffer recompiles once)
+        run(k)
+    timed = [run(k) for k in range(steps)]
+    with tempfile.TemporaryDirectory() as trace_dir:
+        with jax.profiler.trace(trace_dir):
+            for k in range(steps):
+                run(k)
+        events = op_events(trace_dir)
+    rcfg = step_raster_config(config, session.pair_capacity)
+    v = view_order(config.seed, step0, session.images.shape[0])
+    hlo = session.step_fn.lower(state0, session.images[v], session.Ks[v], session.w2cs[v], jnp.float32(1e-4), rcfg,
+                                session.width, session.height).compile().as_text()
+    bodies, owner, sources = _loop_bodies(hlo), _owners(hlo), source_of(hlo)
+
+    op_ms, op_calls, by_file = collections.Counter(), collections.Counter(), collections.Counter()
+    for start, end, _, name in events:
+        key = (bodies.get(owner.get(name), "rest of the step" if name in owner else "unmatched"), name)
+        op_ms[key] += (end - start) / 1e6 / steps
+        op_calls[key] += 1 / steps
+        if key[0] == "rest of the step":
+            by_file[(sources.get(name) or ["(no source)"])[0].split(":")[0]] += (end - start) / 1e6 / steps
+    region_ms = collections.Counter()
+    for (region, _), t in op_ms.items():
+        region_ms[region] += t
+    # Every op of a loop body runs once per iteration: the most frequent one counts them.
+    iterations = {r: max((c for (region, _), c in op_calls.items() if region == r), default=0.0)
+                  for r in ("forward", "backward")}
+    per_iteration = rcfg.batch_chunks * rcfg.chunk_size * rcfg.tile_size ** 2  # pair-pixels evaluated
+    wall, cpu, metrics = zip(*timed)
+    rate = exp_rate()
+    return dict(run=str(run_dir), step=step0, surfels=int(jnp.sum(state0.active)), pool=state0.capacity,
+                image=[session.width, session.height], steps=steps,
+                step_wall_s=float(np.median(wall)), step_cpu_s=float(np.median(cpu)),
+                candidate_pairs=float(np.median([m["num_pairs"] for m in metrics])),
+                thread_ms_per_step={k: round(v, 2) for k, v in region_ms.most_common()},
+                loop_iterations_per_step=iterations, pair_pixels_per_iteration=per_iteration,
+                thread_ns_per_pair_pixel={r: region_ms[r] * 1e6 / max(n * per_iteration, 1)
+                                          for r, n in iterations.items()},
+                exp_rate_per_s=rate, exp_ns_per_evaluation=1e9 / rate,
+                rest_of_step_ms_by_file={k: round(v, 2) for k, v in by_file.most_common()},
+                busy_per_step={k: v / steps for k, v in busy_threads(events).items()},
+                top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3), calls_per_step=round(op_calls[region, name], 1),
+                              source=sources.get(name, [])[:3]) for (region, name), t in op_ms.most_common(40)])
+
+
+def main_step(args) -> int:
+    result = profile_training_step(Path(args.train_run), args.steps)
+    result.update(jax=jax.__version__, cpus=os.cpu_count(), load_average=os.getloadavg()[0])
+    out = Path(args.out).with_name("fusion_profile_step.json") if args.out == DEFAULT_OUT else Path(args.out)
+    windows = json.loads(out.read_text()) if out.exists() else {}
+    windows[args.label or f"{Path(args.train_run).name} @ step {result['step']}"] = result
+    write_json(out, windows)
+    t = result["thread_ms_per_step"]
+    print(f"step {result['step_wall_s'] * 1e3:.0f} ms wall, {result['step_cpu_s'] * 1e3:.0f} ms CPU; thread ms: "
+          + ", ".join(f"{k} {v:.0f}" for k, v in t.items()))
+    print("loop iterations", result["loop_iterations_per_step"], "ns per pair-pixel",
+          {k: round(v, 2) for k, v in result["thread_ns_per_pair_pixel"].items()},
+          f"(a fused exp: {result['exp_ns_per_evaluation']:.2f} ns)")
+    busy = result["busy_per_step"]
+    print(f"threads busy: none {busy['idle_ms']:.0f}, one {busy['one_busy_ms']:.0f}, two+ {busy['two_or_more_busy_ms']:.0f} ms")
+    print("rest of the step by file:", {k: round(v, 1) for k, v in list(result["rest_of_step_ms_by_file"].items())[:8]})
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--surfels", type=int, default=100_000)
@@ -131,10 +251,15 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--top", type=int, default=25, help="ops printed (all are written)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "fusion_profile.json"))
+    ap.add_argument("--train-run", help="profile training steps from this run's checkpoint instead")
+    ap.add_argument("--steps", type=int, default=3, help="with --train-run: steps timed and traced")
+    ap.add_argument("--label", help="with --train-run: the window's name in fusion_profile_step.json")
+    ap.add_argument("--out", default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if jax.default_backend() != "cpu":
         raise SystemExit("fusion_profile reads XLA:CPU's threads: run it with JAX_PLATFORMS=cpu")
+    if args.train_run:
+        return main_step(args)
     result = profile_camera(args.surfels, args.width, args.height, args.frames)
     result.update(jax=jax.__version__, cpus=os.cpu_count(), load_average=os.getloadavg()[0])
     write_json(args.out, result)
