@@ -3,9 +3,9 @@
 Every compiled op (fusion, dot, sort, scatter) of the camera's program is timed with
 jax.profiler over a few frames and mapped to the source lines it came from (the compiled HLO's
 stack-frame metadata). Ops inside the compositor's loop run once per batch; the rest once per
-frame. The same trace says how many threads were busy at once, which is what decides whether
-intra-op parallelism can pay on this machine. This rasterizer's speed depends on XLA:CPU's fusion
-choices, so a change in a JAX upgrade shows up here first.
+frame. The same trace says how many ops ran at once (not how many cores: see `busy_threads`).
+This rasterizer's speed depends on XLA:CPU's fusion choices, so a change in a JAX upgrade shows
+up here first.
 
     JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --surfels 100000 --frames 3
     JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --train-run RUN [--label NAME]
@@ -15,7 +15,8 @@ With `--train-run` (a run folder with config.toml and checkpoint.npz) it profile
 steps from that checkpoint instead and adds a window to fusion_profile_step.json: thread time
 in the compositor's forward loop, its backward loop and the rest of the step (by source file),
 the loop iterations, the nanoseconds of thread time per evaluated pair-pixel in each pass beside
-the machine's fused exp rate measured in the same process, and how long one or both cores ran ops.
+the machine's fused exp rate measured in the same process, and how long one or more ops ran at
+once. `--one-core` pins the process to one core, so two windows say what the other cores buy.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+if "--one-core" in sys.argv:  # before JAX starts its thread pools, which inherit the affinity
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 import jax
 import numpy as np
@@ -61,7 +64,10 @@ def op_events(trace_dir: str) -> list[tuple[int, int, str, str]]:
 
 
 def busy_threads(events) -> dict:
-    """Milliseconds of the traced span with no, one and two or more threads running ops."""
+    """Milliseconds of the traced span with no, one and two or more compiled ops running at once.
+    A fusion that XLA splits over its thread pool (outer_dimension_partitions) is one event, so
+    this counts concurrent ops, not busy cores: an elementwise loop that ran 1.9x faster on two
+    cores than on one still shows a single op running. Compare `--one-core` runs for that."""
     edges = sorted([(s, 1) for s, _, _, _ in events] + [(e, -1) for _, e, _, _ in events])
     busy, running, last = [0, 0, 0], 0, edges[0][0] if edges else 0
     for t, step in edges:
@@ -219,14 +225,15 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
                                           for r, n in iterations.items()},
                 exp_rate_per_s=rate, exp_ns_per_evaluation=1e9 / rate,
                 rest_of_step_ms_by_file={k: round(v, 2) for k, v in by_file.most_common()},
-                busy_per_step={k: v / steps for k, v in busy_threads(events).items()},
+                ops_at_once_per_step={k: v / steps for k, v in busy_threads(events).items()},
                 top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3), calls_per_step=round(op_calls[region, name], 1),
                               source=sources.get(name, [])[:3]) for (region, name), t in op_ms.most_common(40)])
 
 
 def main_step(args) -> int:
     result = profile_training_step(Path(args.train_run), args.steps)
-    result.update(jax=jax.__version__, cpus=os.cpu_count(), load_average=os.getloadavg()[0])
+    result.update(jax=jax.__version__, cpus=os.cpu_count(), cores_used=len(os.sched_getaffinity(0)),
+                  load_average=os.getloadavg()[0])
     out = Path(args.out).with_name("fusion_profile_step.json") if args.out == DEFAULT_OUT else Path(args.out)
     windows = json.loads(out.read_text()) if out.exists() else {}
     windows[args.label or f"{Path(args.train_run).name} @ step {result['step']}"] = result
@@ -237,8 +244,9 @@ def main_step(args) -> int:
     print("loop iterations", result["loop_iterations_per_step"], "ns per pair-pixel",
           {k: round(v, 2) for k, v in result["thread_ns_per_pair_pixel"].items()},
           f"(a fused exp: {result['exp_ns_per_evaluation']:.2f} ns)")
-    busy = result["busy_per_step"]
-    print(f"threads busy: none {busy['idle_ms']:.0f}, one {busy['one_busy_ms']:.0f}, two+ {busy['two_or_more_busy_ms']:.0f} ms")
+    busy = result["ops_at_once_per_step"]
+    print(f"ops running at once: none {busy['idle_ms']:.0f}, one {busy['one_busy_ms']:.0f}, two+ "
+          f"{busy['two_or_more_busy_ms']:.0f} ms")
     print("rest of the step by file:", {k: round(v, 1) for k, v in list(result["rest_of_step_ms_by_file"].items())[:8]})
     print(f"wrote {out}")
     return 0
@@ -254,6 +262,8 @@ def main(argv=None) -> int:
     ap.add_argument("--train-run", help="profile training steps from this run's checkpoint instead")
     ap.add_argument("--steps", type=int, default=3, help="with --train-run: steps timed and traced")
     ap.add_argument("--label", help="with --train-run: the window's name in fusion_profile_step.json")
+    ap.add_argument("--one-core", action="store_true",
+                    help="run pinned to one core (against an unpinned run: what the other cores buy)")
     ap.add_argument("--out", default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if jax.default_backend() != "cpu":
@@ -265,7 +275,7 @@ def main(argv=None) -> int:
     write_json(args.out, result)
     busy = result["busy_per_frame"]
     print(f"frame {result['frame_wall_s'] * 1e3:.0f} ms wall, {result['thread_ms_per_frame']:.0f} thread-ms "
-          f"({result['loop_thread_ms_per_frame']:.0f} in the compositor loop); threads busy: none "
+          f"({result['loop_thread_ms_per_frame']:.0f} in the compositor loop); ops running at once: none "
           f"{busy['idle_ms']:.0f}, one {busy['one_busy_ms']:.0f}, two+ {busy['two_or_more_busy_ms']:.0f} ms")
     for o in result["ops"][:args.top]:
         print(f"{o['ms_per_frame']:8.2f} ms  x{o['calls_per_frame']:<6g} {o['op']:32s} {'; '.join(o['source'])[:90]}")
