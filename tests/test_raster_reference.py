@@ -102,3 +102,27 @@ def test_gradients_match_finite_differences(compositor, backward):
                                               field: a.reshape(getattr(s64, field).shape)}))
             fd = (shifted(eps) - shifted(-eps)) / (2 * eps)
             assert abs(g[i] - fd) <= 3e-2 * max(abs(fd), 1e-3), (field, i, g[i], fd)
+
+
+@pytest.mark.parametrize("distortion", [False, True])
+def test_skipped_outputs_change_nothing_else(distortion):
+    """depth_normal=False (what training renders until its normal term starts) leaves depth and
+    normal at zero and everything else bit for bit: the image, the distortion and the gradients
+    of a loss that reads them."""
+    s, cam = random_scene(300, degree=1), camera()
+
+    def loss(s, depth_normal):
+        cfg = gs.RasterConfig(depth_normal=depth_normal, distortion=distortion, median=False)
+        out = rasterize(s, cam, cfg, 1 << 14)
+        return jnp.sum(out.rgb * jnp.arange(1.0, 4.0)) + jnp.sum(out.alpha) + jnp.sum(out.distortion), out
+
+    grad = jax.jit(jax.value_and_grad(loss, has_aux=True), static_argnums=1)
+    (_, full), g_full = grad(s, True)
+    (_, lean), g_lean = grad(s, False)
+    assert np.abs(np.asarray(full.depth)).max() > 0
+    for key in ("rgb", "alpha", "distortion"):
+        np.testing.assert_array_equal(np.asarray(getattr(lean, key)), np.asarray(getattr(full, key)), err_msg=key)
+    assert not np.any(np.asarray(lean.depth)) and not np.any(np.asarray(lean.normal))
+    for field in FIELDS:
+        np.testing.assert_array_equal(np.asarray(getattr(g_lean, field)), np.asarray(getattr(g_full, field)),
+                                      err_msg=field)

@@ -33,8 +33,8 @@ import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.raster.binning import tile_corner
-from ghsplat_jax.raster.composite import (LOG_T_FLOOR, M1, NUM_FEATURES, T_MIN, Static, local_pixels,
-                                          ndc_depth, segmented_exclusive_cumsum)
+from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Z, Static, feature_columns,
+                                          local_pixels, ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
 
 # Columns of the per-surfel table (gathered per pair): homography about the centre, det(M),
@@ -159,13 +159,15 @@ def _num_batches(valid, st: Static):
 
 
 def _pixel_sums(weight, z, f, st: Static):
-    """(B, _num_sums(st), P) sums of w f over each chunk, field-major.
+    """(B, len(feature_columns(st)), P) sums of w f over each chunk, field-major.
     Written out as a sum over the chunk's pairs of broadcast products, which XLA:CPU fuses into
     one vectorised loop per feature: as an einsum and reductions over the chunk axis it ran YNN
     batched dots of (P, K) x (K, 6) blocks and small-axis reductions, 2.5x the cost (and a
     (B, P, F) result is strided along P)."""
     cn = f[COLOR_NORMAL][..., None]                                      # (6, K, B, 1)
-    factors = [None, cn[0], cn[1], cn[2], z, cn[3], cn[4], cn[5]]       # A, rgb, z, normal
+    factors = [None, cn[0], cn[1], cn[2]]                               # A, rgb
+    if st.depth_normal:
+        factors += [z, cn[3], cn[4], cn[5]]
     if st.distortion:
         m = ndc_depth(z, st)
         factors += [m, m * m]
@@ -173,10 +175,12 @@ def _pixel_sums(weight, z, f, st: Static):
     return jnp.stack(sums, axis=1)
 
 
-def _num_sums(st: Static) -> int:
-    """Features the forward loop sums: the distortion moments only when they are read (the
-    rest of NUM_FEATURES is zero-filled after the loop, not scattered batch by batch)."""
-    return NUM_FEATURES if st.distortion else M1
+def _all_features(sums, st: Static):
+    """(T, P, NUM_FEATURES) from the (T, P, len(feature_columns(st))) sums, zeros in the other
+    columns (filled once after the loop, not scattered batch by batch)."""
+    columns = dict(zip(feature_columns(st), jnp.moveaxis(sums, -1, 0)))
+    zero = jnp.zeros(sums.shape[:-1], sums.dtype)
+    return jnp.stack([columns.get(c, zero) for c in range(NUM_FEATURES)], axis=-1)
 
 
 def _forward(st: Static, table, surfel, valid, tile, first, offsets):
@@ -197,10 +201,10 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
         return log_t, totals, z_last, selected
 
     median_rows = num_chunks if st.median else 1
-    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, _num_sums(st), pixels)), jnp.zeros((median_rows, pixels)),
-            jnp.full((st.num_tiles, pixels), -1, jnp.int32))
+    init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, len(feature_columns(st)), pixels)),
+            jnp.zeros((median_rows, pixels)), jnp.full((st.num_tiles, pixels), -1, jnp.int32))
     _, totals, z_last, selected = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
-    totals = jnp.pad(jnp.swapaxes(totals, 1, 2), ((0, 0), (0, 0), (0, NUM_FEATURES - _num_sums(st))))  # (T, P, F)
+    totals = _all_features(jnp.swapaxes(totals, 1, 2), st)              # (T, P, F)
     median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
     return (totals, median), (totals, selected)
 
@@ -280,15 +284,18 @@ def _bwd(st: Static, residuals, cotangents):
         t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
         g = g_rows[t]                                                     # (B, F, P)
         plane = lambda c: g[:, c][None]                                   # (1, B, P)
-        const_planes = (1, 2, 3, 5, 6, 7)                                 # rgb and normal
+        const_planes = (1, 2, 3, 5, 6, 7) if st.depth_normal else (1, 2, 3)  # rgb and normal
         # h = g . f for every (pair, pixel): the output change per unit weight. Written out, it
         # fuses; as an einsum, XLA:CPU ran batched (K, 6) x (6, P) dots and a transpose.
-        h = plane(0) + plane(4) * z + sum(f[COLOR_NORMAL][j][..., None] * plane(c) for j, c in enumerate(const_planes))
-        g_z = plane(4)
+        h = plane(0) + sum(f[COLOR_NORMAL][j][..., None] * plane(c) for j, c in enumerate(const_planes))
+        g_z = []                                                          # d(output)/dz per unit weight
+        if st.depth_normal:
+            h = h + plane(Z) * z
+            g_z.append(plane(Z))
         if st.distortion:
             m = ndc_depth(z, st)
             h = h + (plane(8) + plane(9) * m) * m
-            g_z = g_z + (plane(8) + 2.0 * plane(9) * m) * (st.far / (st.far - st.near) * st.near / (z * z))
+            g_z.append((plane(8) + 2.0 * plane(9) * m) * (st.far / (st.far - st.near) * st.near / (z * z)))
         wh = weight * h
         within = _cumsum_k(wh)
         before, prefix = _segmented_carry(within[-1], fst, prefix)
@@ -297,15 +304,17 @@ def _bwd(st: Static, residuals, cotangents):
         # cheap expression into each of the pullback's seven consumers (gathers and all).
         one_minus = 1.0 - alpha
         d_alpha = jnp.where(included, (t_before * h * one_minus - after) / one_minus, 0.0)
-        d_z = weight * g_z
+        d_z = weight * sum(g_z) if g_z else jnp.zeros_like(weight)
         if st.median:
             last, _ = _last_median(included, log_before)
             chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
             median_here = (selected[t] == chunk_id[:, None])[None]
             d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
-        g_const = jnp.concatenate([g[:, 1:4], g[:, 5:8]], axis=1)         # (B, 6, P)
-        d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const)            # (K, B, 6)
+        g_const = jnp.concatenate([g[:, c:c + 1] for c in const_planes], axis=1)  # (B, 6 or 3, P)
+        d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const)            # (K, B, 6 or 3)
+        if not st.depth_normal:
+            d_const = jnp.pad(d_const, ((0, 0), (0, 0), (0, 3)))           # no normal gradient
         d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)
         d_table = d_table.at[_slice(surfel, i, batch)].add(d_rows)         # padding pairs add zeros
         return log_t, prefix, d_table

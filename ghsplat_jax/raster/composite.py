@@ -50,6 +50,7 @@ class Static:
     batch_chunks: int
     median: bool = True       # the median depth is wanted (the carried compositor skips it otherwise)
     distortion: bool = True   # the NDC depth sums of the distortion term are wanted (likewise)
+    depth_normal: bool = True  # the depth and normal sums are wanted (likewise)
     samples: int = 0          # sample slots per tile (`samples.PixelSamples`); 0: every pixel of the tile
 
     @property
@@ -69,6 +70,13 @@ class ChunkParams:
     color: jax.Array
     normal: jax.Array
     depth: jax.Array
+
+
+def feature_columns(st: Static) -> list[int]:
+    """The feature columns a render sums: weight and colour always; depth and normal, and the
+    distortion moments, only where they are read (`Static.depth_normal`, `Static.distortion`)."""
+    return ([A, *range(RGB.start, RGB.stop)] + ([Z, *range(NORMAL.start, NORMAL.stop)] if st.depth_normal else [])
+            + ([M1, M2] if st.distortion else []))
 
 
 def local_pixels(ts: int) -> tuple[np.ndarray, np.ndarray]:

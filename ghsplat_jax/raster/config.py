@@ -34,6 +34,7 @@ class RasterConfig:
     backend: str = "tiled"                 # "tiled" (this rasterizer) or "dense" (naive per-tile baseline)
     median: bool = True                    # compute median_depth (False: zeros, and faster)
     distortion: bool = True                # compute distortion (False: zeros, and faster)
+    depth_normal: bool = True              # compute depth and normal (False: zeros, and faster)
     sh_degree: int | None = None           # active SH bands; None uses every band the data has
     sort: str = "auto"                     # binning's sorts: "auto" (NumPy's for large sorts on a CPU backend,
                                            # through a host callback: 16x faster than XLA:CPU's, but XLA's

@@ -84,8 +84,9 @@ def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected,
     median = to_pixels(median) if cfg.median else jnp.zeros_like(a)
     return RenderOutput(
         rgb=img[..., composite.RGB] + (1.0 - a[..., None]) * background, alpha=a,
-        depth=_safe_divide(img[..., composite.Z], a), median_depth=median,
-        normal=img[..., composite.NORMAL], distortion=distortion,
+        depth=_safe_divide(img[..., composite.Z], a) if cfg.depth_normal else jnp.zeros_like(a),
+        median_depth=median, normal=img[..., composite.NORMAL] if cfg.depth_normal else jnp.zeros(a.shape + (3,)),
+        distortion=distortion,
         visible=p.visible, radii=radii, stats=stats)
 
 
@@ -120,7 +121,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
     grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
     p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
     st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
-                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion,
+                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion, cfg.depth_normal,
                           0 if samples is None else samples.slots)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
                                _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",

@@ -56,10 +56,12 @@ def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, ra
     ssim = losses.ssim(out.rgb, image)
     loss = (1.0 - w.lambda_dssim) * l1 + w.lambda_dssim * (1.0 - ssim)
     dist = jnp.mean(out.distortion)
-    if w.lambda_dist > 0:
+    # A geometry term is computed only while the render computes what it reads
+    # (`trainer.step_raster_config` switches it on at its start step).
+    if w.lambda_dist > 0 and raster_cfg.distortion:
         loss = loss + jnp.where(step >= w.dist_from, w.lambda_dist, 0.0) * dist
     normal_loss = jnp.zeros(())
-    if w.lambda_normal > 0:
+    if w.lambda_normal > 0 and raster_cfg.depth_normal:
         depth = out.depth if w.depth_ratio == 0 else (
             (1 - w.depth_ratio) * out.depth + w.depth_ratio * out.median_depth)
         dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)

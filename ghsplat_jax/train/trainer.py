@@ -82,13 +82,18 @@ def stack_views(views):
     return images, Ks, w2cs, w, h
 
 
-def step_raster_config(config: TrainConfig, pair_capacity: int):
+def step_raster_config(config: TrainConfig, pair_capacity: int, step: int | None = None):
     """The run's rendering settings as the training step uses them: a static pair buffer whose
-    overflow is reported (and redone), and only the outputs the losses read."""
-    normal_loss = config.lambda_normal > 0
+    overflow is reported (and redone), and only the outputs the losses read at `step` (None: every
+    term on). A geometry term weighs zero before its start step (as in 2DGS), so until then its
+    outputs are not computed at all; the step compiles once more when each term starts."""
+    started = lambda start: step is None or step >= start
+    normal_loss = config.lambda_normal > 0 and started(config.normal_from)
     return dataclasses.replace(config.raster, pair_capacity=pair_capacity, on_overflow="report",
                                median=config.raster.median and normal_loss and config.depth_ratio > 0,
-                               distortion=config.raster.distortion and config.lambda_dist > 0)
+                               depth_normal=config.raster.depth_normal and normal_loss,
+                               distortion=config.raster.distortion and config.lambda_dist > 0
+                               and started(config.dist_from))
 
 
 def _jsonable(d: dict) -> dict:
@@ -223,7 +228,7 @@ class _Session:
         c = self.config
         v = view_order(c.seed, step, self.images.shape[0])
         while True:
-            rcfg = step_raster_config(c, self.pair_capacity)
+            rcfg = step_raster_config(c, self.pair_capacity, step)
             lr = jnp.float32(self.means_lr(step))
             new, m = self.step_fn(self.state, self.images[v], self.Ks[v], self.w2cs[v], lr, rcfg, self.width,
                                   self.height)
