@@ -1,5 +1,5 @@
 """benchmarks/fusion_profile.py: compiled ops timed from a real profiler trace, traced back to
-their source lines, and the busy-thread count of a trace."""
+their source lines, the count of ops running at once, and the training profile's loop regions."""
 
 import importlib.util
 import sys
@@ -51,3 +51,16 @@ def test_busy_threads_counts_overlapping_ops():
 def test_missing_trace_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no profiler trace"):
         _fusion_profile().op_events(str(tmp_path))
+
+
+def test_training_profile_tells_forward_from_backward_loops():
+    """A differentiated loop compiles to two while loops: the training-step profile assigns each
+    body's ops to the forward or the backward pass by the loop's op name."""
+    fp = _fusion_profile()
+    f = jax.jit(jax.grad(lambda x: jax.lax.fori_loop(0, 3, lambda i, c: jnp.sin(c) * c, x).sum()))
+    hlo = f.lower(jnp.ones(8)).compile().as_text()
+    bodies = fp._loop_bodies(hlo)
+    assert sorted(bodies.values()) == ["backward", "forward"]
+    owners = fp._owners(hlo)
+    for body in bodies:
+        assert any(owner == body for owner in owners.values())  # each body's ops are found
