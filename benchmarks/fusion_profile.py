@@ -193,7 +193,7 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
             for k in range(steps):
                 run(k)
         events = op_events(trace_dir)
-    rcfg = step_raster_config(config, session.pair_capacity)
+    rcfg = step_raster_config(config, session.pair_capacity, step0)  # the program the traced steps ran
     v = view_order(config.seed, step0, session.images.shape[0])
     hlo = session.step_fn.lower(state0, session.images[v], session.Ks[v], session.w2cs[v], jnp.float32(1e-4), rcfg,
                                 session.width, session.height).compile().as_text()
