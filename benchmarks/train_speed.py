@@ -4,6 +4,7 @@
     python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
     python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
     python benchmarks/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
+    python benchmarks/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live ones
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -11,12 +12,14 @@ from the same state and views, after a warm-up step that compiles; times are med
 compositor, 3-sigma boxes, every output computed, 16-chunk batches. With `--compare pool` both
 variants use the current rasterizer and "previous" keeps the checkpoint's surfel pool as it grew
 (doubling, before pool buckets), while "current" is compacted to the smallest pool bucket that
-holds the live surfels, as the default strategy now does. With `--compare malloc` both use the same settings and
-"previous" runs under glibc's default allocation policy, "current" under
+holds the live surfels, as the default strategy now does. With `--compare malloc` both use the
+same settings and "previous" runs under glibc's default allocation policy, "current" under
 `host_memory.reuse_freed_memory` (what the `ghsplat` command sets). The policy is process-wide
 and cannot be switched back and forth (a trimmed heap faults in again as it regrows), so each
-policy runs in its own child process, twice each, alternating; the rows pool their steps. Every
-row also counts the page faults per step. The same process also measures
+policy runs in its own child process, twice each, alternating; the rows pool their steps. With
+`--compare skip` both use the same settings and "previous" is traced (and stepped) with the
+carried backward walking every used chunk, as it did before it skipped the chunks that cannot
+change an output. Every row also counts the page faults per step. The same process also measures
 the machine's fused exp rate, so throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
@@ -24,6 +27,7 @@ benchmarks/results/train_speed.json (results are appended by window) and train_s
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -47,6 +51,7 @@ from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
 from ghsplat_jax.train.run_dir import load_training_data
+from ghsplat_jax.raster import carried
 from ghsplat_jax.train.state import fit_pool
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
@@ -54,6 +59,17 @@ RESULTS = Path(__file__).parent / "results"
 SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
           "lego": TrainConfig(data="nerf_synthetic_lego", downscale=2.0).replace(background=(1.0, 1.0, 1.0))}
 PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
+
+
+@contextlib.contextmanager
+def walk_every_chunk():
+    """Trace the carried backward as before it skipped chunks: every used chunk is walked."""
+    skipping = carried.live_chunks
+    carried.live_chunks = lambda live, surfel, valid, tile: skipping(valid[:, 0], surfel, valid, tile)
+    try:
+        yield
+    finally:
+        carried.live_chunks = skipping
 
 
 def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
@@ -76,20 +92,27 @@ def _minor_faults() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
-def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int, transforms=None) -> dict:
+def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int, transforms=None,
+               contexts=None) -> dict:
     """Median wall and CPU seconds and page faults per training step for each config, from the
     same checkpoint (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(state)}
-    applied after loading), the configs' steps interleaved (A, B, A, B, ...) so drifting load
-    hits them alike. Each row keeps its raw samples."""
+    applied after loading; `contexts` {name: context manager factory} around its compile and
+    steps), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike.
+    Each row keeps its raw samples."""
     checkpoints = checkpoint if isinstance(checkpoint, dict) else dict.fromkeys(configs, checkpoint)
-    transforms = transforms or {}
-    sessions = {name: _session(cfg, dataset, checkpoints[name], transforms.get(name)) for name, cfg in configs.items()}
+    transforms, contexts = transforms or {}, contexts or {}
+    within = lambda name: contexts.get(name, contextlib.nullcontext)()
+    sessions = {}
+    for name, cfg in configs.items():
+        with within(name):
+            sessions[name] = _session(cfg, dataset, checkpoints[name], transforms.get(name))
     starts = {name: int(session.state.step) for name, session in sessions.items()}
     samples = {name: [] for name in sessions}
     for k in range(steps):
         for name, session in sessions.items():
             t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
-            m = session.step(starts[name] + k)
+            with within(name):
+                m = session.step(starts[name] + k)
             samples[name].append((time.perf_counter() - t0, time.process_time() - c0, m["num_pairs"],
                                   _minor_faults() - f0))
     rows = {}
@@ -134,10 +157,11 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc"), default="raster",
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip"), default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
-                         "allocation policy against host_memory's")
+                         "allocation policy against host_memory's; skip: the carried backward walking every "
+                         "chunk against the chunks that can change an output")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
@@ -154,6 +178,10 @@ def main(argv=None) -> int:
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": fit_pool})
         previous = "the checkpoint's surfel pool as it grew"
+    elif args.compare == "skip":
+        variants = {"previous": config, "current": config}
+        rows = time_steps(variants, dataset, checkpoint, args.steps, contexts={"previous": walk_every_chunk})
+        previous = "the carried backward walking every used chunk"
     else:
         variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
         rows, previous = time_steps(variants, dataset, checkpoint, args.steps), PREVIOUS

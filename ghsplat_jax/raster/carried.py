@@ -8,8 +8,12 @@ fused expression, so throughput follows the cache level those planes live in. In
   - log(1 - alpha) is summed within each chunk by one small matmul with a triangular matrix;
   - chunk sums are scanned across the batch, restarting at each tile's first chunk, and the
     transmittance of the tile that straddles the batch boundary is carried into the next batch.
-The backward pass walks the same batches again, recomputes the forward blend with the same
-carry, carries g . (prefix of w f) the same way (d/dalpha_i sum_j w_j f_j = T_i f_i -
+The forward also marks the chunks that can change an output: those with alpha > 0 at a pixel
+still open (T >= T_MIN) when the chunk starts. The others (mostly the chunks behind a tile's
+saturated pixels) add zero weight everywhere and leave every open pixel's transmittance as it
+was, so the backward pass skips them exactly: it walks the marked chunks only, in layout order,
+in batches (on dense greenhouse segments late in training, under half of the chunks). It
+recomputes the forward blend with the same carry, carries g . (prefix of w f) the same way (d/dalpha_i sum_j w_j f_j = T_i f_i -
 S_i / (1 - alpha_i) with S_i = total - inclusive prefix), and pulls back through the per-pixel
 evaluation by hand: no autodiff inside the loop, and no per-chunk residuals but the median's.
 
@@ -106,7 +110,8 @@ def _segmented_carry(chunk_totals, first, carry):
 
 
 def _blend(alpha, log_t_carry, first):
-    """Transmittance before each pair, inclusion and weights (K, B, P); the next carry."""
+    """Transmittance before each pair, inclusion and weights (K, B, P); the next carry; and
+    whether each chunk can change an output (B,): alpha > 0 at a pixel still open before it."""
     log1m = jnp.log(1.0 - alpha)  # log1p costs twice as much on XLA:CPU; alpha <= 0.99 keeps this exact enough
     within = _cumsum_k(log1m)
     log_t0, carry = _segmented_carry(within[-1], first, log_t_carry)
@@ -116,7 +121,9 @@ def _blend(alpha, log_t_carry, first):
     t_before = jnp.exp(log_before)
     included = (alpha > 0) & (log_after >= LOG_T_MIN)
     weight = jnp.where(included, alpha * t_before, 0.0)
-    return t_before, included, weight, log_before, jnp.maximum(carry, LOG_T_FLOOR)
+    # A pixel closed at the chunk's start stays closed with or without the chunk's pairs.
+    live = jnp.any((log_t0 >= LOG_T_MIN) & (within[-1] < 0), axis=-1)
+    return t_before, included, weight, log_before, jnp.maximum(carry, LOG_T_FLOOR), live
 
 
 def _last_median(included, log_before):
@@ -188,25 +195,27 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
     batch = st.batch_chunks
 
     def body(i, state):
-        log_t, totals, z_last, selected = state
+        log_t, totals, z_last, selected, live = state
         f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
         alpha, z, _ = _evaluate(f, *_offsets(corner, _local_points(offsets, t, st)), v, st)
-        _, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
+        _, included, weight, log_before, log_t, batch_live = _blend(alpha, log_t, fst)
+        live = jax.lax.dynamic_update_slice_in_dim(live, batch_live, i * batch, 0)
         totals = totals.at[t].add(_pixel_sums(weight, z, f, st), mode="drop")
         if st.median:
             last, any_last = _last_median(included, log_before)
             z_last = jax.lax.dynamic_update_slice_in_dim(z_last, jnp.sum(jnp.where(last, z, 0.0), 0), i * batch, 0)
             chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
             selected = selected.at[t].max(jnp.where(any_last, chunk_id[:, None], -1), mode="drop")
-        return log_t, totals, z_last, selected
+        return log_t, totals, z_last, selected, live
 
     median_rows = num_chunks if st.median else 1
     init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, len(feature_columns(st)), pixels)),
-            jnp.zeros((median_rows, pixels)), jnp.full((st.num_tiles, pixels), -1, jnp.int32))
-    _, totals, z_last, selected = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+            jnp.zeros((median_rows, pixels)), jnp.full((st.num_tiles, pixels), -1, jnp.int32),
+            jnp.zeros(num_chunks, bool))
+    _, totals, z_last, selected, live = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
     totals = _all_features(jnp.swapaxes(totals, 1, 2), st)              # (T, P, F)
     median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
-    return (totals, median), (totals, selected)
+    return (totals, median), (totals, selected, live)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -221,8 +230,21 @@ def composite_carried(st: Static, table, surfel, valid, tile, first, offsets=Non
 
 
 def _fwd(st, table, surfel, valid, tile, first, offsets):
-    outputs, (totals, selected) = _forward(st, table, surfel, valid, tile, first, offsets)
-    return outputs, (table, surfel, valid, tile, first, offsets, totals, selected)
+    outputs, (totals, selected, live) = _forward(st, table, surfel, valid, tile, first, offsets)
+    return outputs, (table, surfel, valid, tile, offsets, totals, selected, live)
+
+
+def live_chunks(live, surfel, valid, tile):
+    """The chunks the backward walks: the live ones in layout order, then padding (valid False).
+    Returns their layout index (for the median's chunk ids), surfels, valid, tile and first
+    flags (recomputed: a tile's first chunks may be skipped), and how many are live."""
+    w = live.shape[0]
+    order = jnp.nonzero(live, size=w, fill_value=w - 1)[0]
+    num_live = jnp.sum(live.astype(jnp.int32))
+    kept = jnp.arange(w) < num_live
+    t = tile[order]
+    first = kept & jnp.concatenate([jnp.ones(1, bool), t[1:] != t[:-1]])
+    return order, surfel[order], valid[order] & kept[:, None], t, first, num_live
 
 
 def _pullback(f, corner, local, aux, d_alpha, d_z):
@@ -264,7 +286,8 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
 
 
 def _bwd(st: Static, residuals, cotangents):
-    table, surfel, valid, tile, first, offsets, totals, selected = residuals
+    table, surfel, valid, tile, offsets, totals, selected, live = residuals
+    order, surfel, valid, tile, first, num_live = live_chunks(live, surfel, valid, tile)
     g_totals, g_median = cotangents
     pixels = st.pixels
     batch = st.batch_chunks
@@ -281,7 +304,7 @@ def _bwd(st: Static, residuals, cotangents):
         f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
         local = _local_points(offsets, t, st)
         alpha, z, aux = _evaluate(f, *_offsets(corner, local), v, st)
-        t_before, included, weight, log_before, log_t = _blend(alpha, log_t, fst)
+        t_before, included, weight, log_before, log_t, _ = _blend(alpha, log_t, fst)
         g = g_rows[t]                                                     # (B, F, P)
         plane = lambda c: g[:, c][None]                                   # (1, B, P)
         const_planes = (1, 2, 3, 5, 6, 7) if st.depth_normal else (1, 2, 3)  # rgb and normal
@@ -307,7 +330,7 @@ def _bwd(st: Static, residuals, cotangents):
         d_z = weight * sum(g_z) if g_z else jnp.zeros_like(weight)
         if st.median:
             last, _ = _last_median(included, log_before)
-            chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
+            chunk_id = _slice(order, i, batch)
             median_here = (selected[t] == chunk_id[:, None])[None]
             d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
@@ -320,7 +343,7 @@ def _bwd(st: Static, residuals, cotangents):
         return log_t, prefix, d_table
 
     init = (jnp.zeros(pixels), jnp.zeros(pixels), jnp.zeros_like(table))
-    _, _, d_table = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+    _, _, d_table = jax.lax.fori_loop(0, (num_live + batch - 1) // batch, body, init)
     return d_table, None, None, None, None, None
 
 
