@@ -5,6 +5,7 @@
     python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
     python benchmarks/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
     python benchmarks/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live ones
+    python benchmarks/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -19,8 +20,10 @@ and cannot be switched back and forth (a trimmed heap faults in again as it regr
 policy runs in its own child process, twice each, alternating; the rows pool their steps. With
 `--compare skip` both use the same settings and "previous" is traced (and stepped) with the
 carried backward walking every used chunk, as it did before it skipped the chunks that cannot
-change an output. Every row also counts the page faults per step. The same process also measures
-the machine's fused exp rate, so throughputs can be read against it. Writes
+change an output. With `--compare pairs` "current" refits the pair buffer as the trainer does
+after an epoch (the bucket of the most pairs a training view needs). Every row also counts the
+page faults per step. The same process also measures the machine's fused exp rate, so
+throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
 
@@ -61,6 +64,25 @@ SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
 PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
 
 
+def compact_pool(session) -> None:
+    session.state = fit_pool(session.state)
+
+
+def refit_pairs(session) -> None:
+    """The pair buffer the trainer refits to after an epoch: the bucket of the most pairs any
+    training view needs, with the trainer's headroom."""
+    from ghsplat_jax.core.camera import Camera
+    from ghsplat_jax.raster.render import count_pairs
+    from ghsplat_jax.train.state import render_params
+
+    s, needed = session.state, 0
+    for K, w2c in zip(session.Ks, session.w2cs):
+        cam = Camera(K, w2c, session.width, session.height)
+        surfels = render_params(s.params, s.active, cam.world_to_cam)
+        needed = max(needed, int(count_pairs(surfels, cam, session.config.raster)[0]))
+    session.pair_capacity = trainer.pair_bucket(needed)
+
+
 @contextlib.contextmanager
 def walk_every_chunk():
     """Trace the carried backward as before it skipped chunks: every used chunk is walked."""
@@ -73,11 +95,12 @@ def walk_every_chunk():
 
 
 def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
+    """A training session at `checkpoint` (or initialisation), `transform(session)` applied, compiled."""
     session = trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
     if checkpoint is not None:
         session._restore(checkpoint)
     if transform is not None:
-        session.state = transform(session.state)
+        transform(session)
     state0 = session.state
     session.step(int(state0.step))  # compile
     session.state = state0
@@ -95,7 +118,7 @@ def _minor_faults() -> int:
 def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: int, transforms=None,
                contexts=None) -> dict:
     """Median wall and CPU seconds and page faults per training step for each config, from the
-    same checkpoint (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(state)}
+    same checkpoint (or step 0; or {name: checkpoint}, one per config; `transforms` {name: f(session)}
     applied after loading; `contexts` {name: context manager factory} around its compile and
     steps), the configs' steps interleaved (A, B, A, B, ...) so drifting load hits them alike.
     Each row keeps its raw samples."""
@@ -157,11 +180,12 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip"), default="raster",
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairs"), default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
                          "allocation policy against host_memory's; skip: the carried backward walking every "
-                         "chunk against the chunks that can change an output")
+                         "chunk against the chunks that can change an output; pairs: the checkpoint's pair "
+                         "buffer against the one the trainer refits to after an epoch")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
@@ -176,12 +200,16 @@ def main(argv=None) -> int:
         rows, previous = time_policies(args), "glibc's default allocation policy"
     elif args.compare == "pool":
         variants = {"previous": config, "current": config}
-        rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": fit_pool})
+        rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": compact_pool})
         previous = "the checkpoint's surfel pool as it grew"
     elif args.compare == "skip":
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, contexts={"previous": walk_every_chunk})
         previous = "the carried backward walking every used chunk"
+    elif args.compare == "pairs":
+        variants = {"previous": config, "current": config}
+        rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": refit_pairs})
+        previous = "the checkpoint's pair buffer"
     else:
         variants = {"previous": config.replace(**{f"raster.{k}": v for k, v in PREVIOUS.items()}), "current": config}
         rows, previous = time_steps(variants, dataset, checkpoint, args.steps), PREVIOUS

@@ -362,3 +362,35 @@ def test_inputs_that_predict_a_poor_model_are_warned_about(caplog):
     assert len(few) == 1 and "only 5 training views" in few[0]
     assert len(no_points) == 1 and "0 SfM points" in no_points[0] and "random points" in no_points[0]
     assert [r.getMessage() for r in caplog.records] == few + no_points
+
+
+def test_pair_buffer_shrinks_after_an_epoch_that_needs_under_half_of_it():
+    """An automatically sized pair buffer follows a falling pair count down, once per epoch of
+    steps and only by a factor of two or more (growth on overflow doubles); a capacity set in
+    the config is kept."""
+    import types
+
+    from ghsplat_jax.raster.render import capacity_bucket
+    from ghsplat_jax.train.trainer import _Session, pair_bucket
+
+    assert pair_bucket(100_000) == capacity_bucket(125_000) == 131_072
+    assert pair_bucket(461_229) == 655_360  # lego's settled need: a third of its 2M buffer
+
+    def session(capacity, config_capacity=None, views=4):
+        return types.SimpleNamespace(
+            config=TrainConfig().replace(pair_capacity=config_capacity), images=np.zeros((views, 1)),
+            pair_capacity=capacity, epoch_pairs=0, epoch_steps=0)
+
+    s = session(1 << 21)
+    for pairs in (300_000, 461_229, 290_000):   # part of an epoch: nothing changes yet
+        _Session._refit_pairs(s, pairs)
+        assert s.pair_capacity == 1 << 21
+    _Session._refit_pairs(s, 350_000)
+    assert s.pair_capacity == 655_360 and s.epoch_steps == 0
+    for _ in range(4):                           # needs over half of the buffer: kept
+        _Session._refit_pairs(s, 300_000)
+    assert s.pair_capacity == 655_360
+    fixed = session(1 << 21, config_capacity=1 << 21)
+    for _ in range(4):
+        _Session._refit_pairs(fixed, 1000)
+    assert fixed.pair_capacity == 1 << 21

@@ -126,8 +126,8 @@ class TrainConfig:
     # --- rasterizer: the run's one set of rendering settings ----------------------------------
     # Saved as the [raster] table of config.toml; training, eval, render, export previews, the
     # simulator and the viewer all read it from there. `background` is also the colour RGBA
-    # images are composited on; `pair_capacity` (None: sized from a first render) the initial
-    # pair buffer. The flat names near, far, background, tile_size, chunk_size, batch_chunks,
+    # images are composited on; `pair_capacity` the initial pair buffer (None: sized from a first
+    # render, and shrunk after an epoch that needs under half of it). The flat names near, far, background, tile_size, chunk_size, batch_chunks,
     # raster_backward and pair_capacity are accepted as aliases of these fields.
     raster: RasterConfig = RasterConfig()
 

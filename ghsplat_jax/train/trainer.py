@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.host_memory import reuse_freed_memory
+from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
@@ -67,8 +68,8 @@ def view_order(seed: int, step: int, num_views: int) -> int:
 
 
 def pair_bucket(pairs: int) -> int:
-    """Power-of-two pair capacity with 25% headroom (few buckets: few recompiles)."""
-    return 1 << max(12, math.ceil(math.log2(max(pairs, 1) * 1.25)))
+    """Pair capacity with 25% headroom, in the renderer's buckets (1, 1.25, 1.5, 1.75 x 2^k)."""
+    return capacity_bucket(math.ceil(max(pairs, 1) * 1.25))
 
 
 def stack_views(views):
@@ -149,6 +150,7 @@ class _Session:
         self.consecutive = 0  # non-finite steps in a row
         self.prior_seconds = 0.0
         self.prior_peak_rss_mb = 0.0  # training processes before a resume
+        self.epoch_pairs, self.epoch_steps = 0, 0  # the most pairs a view needed, over steps since the last refit
         path = out_dir / CHECKPOINT_NAME
         if resume and path.exists():
             self._restore(path)
@@ -255,8 +257,26 @@ class _Session:
             return m
         self.consecutive = 0
         self.state = new
+        self._refit_pairs(int(m["num_pairs"]))
         m.update(self._hook("after_step", step + 1))
         return m
+
+    def _refit_pairs(self, pairs: int) -> None:
+        """After each epoch of steps, shrink an automatically sized pair buffer to the bucket of
+        the most pairs a view needed, when that is at most half of it. Binning and the compositor's
+        set-up work per slot of the buffer, and a run from random points starts with several
+        times the pairs it settles at (lego kept a 2M-pair buffer for 290-460k pairs). Growth on
+        overflow doubles, so the factor of two keeps the buffer from see-sawing; each change
+        compiles the step once more. A capacity set in the config is left as it grows."""
+        self.epoch_pairs, self.epoch_steps = max(self.epoch_pairs, pairs), self.epoch_steps + 1
+        if self.epoch_steps < self.images.shape[0]:
+            return
+        fit = pair_bucket(self.epoch_pairs)
+        if self.config.raster.pair_capacity is None and 2 * fit <= self.pair_capacity:
+            log.info("at most %d tile-surfel pairs per view over the last epoch; pair capacity %d -> %d",
+                     self.epoch_pairs, self.pair_capacity, fit)
+            self.pair_capacity = fit
+        self.epoch_pairs, self.epoch_steps = 0, 0
 
 
 def _sync(fh) -> None:
