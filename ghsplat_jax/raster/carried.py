@@ -13,9 +13,10 @@ still open (T >= T_MIN) when the chunk starts. The others (mostly the chunks beh
 saturated pixels) add zero weight everywhere and leave every open pixel's transmittance as it
 was, so the backward pass skips them exactly: it walks the marked chunks only, in layout order,
 in batches (on dense greenhouse segments late in training, under half of the chunks). It
-recomputes the forward blend with the same carry, carries g . (prefix of w f) the same way (d/dalpha_i sum_j w_j f_j = T_i f_i -
-S_i / (1 - alpha_i) with S_i = total - inclusive prefix), and pulls back through the per-pixel
-evaluation by hand: no autodiff inside the loop, and no per-chunk residuals but the median's.
+recomputes the forward blend with the same carry, carries g . (prefix of w f) the same way
+(d/dalpha_i sum_j w_j f_j = T_i f_i - S_i / (1 - alpha_i) with S_i = total - inclusive prefix),
+and pulls back through the per-pixel evaluation by hand: no autodiff inside the loop, and no
+per-chunk residuals but the median's and the marks.
 
 Each surfel is stored (and gathered per pair, batch by batch) as the homography of its ray
 transform about the filter centre c: the pixel-plane cross product k x l is linear in the pixel,

@@ -127,8 +127,9 @@ class TrainConfig:
     # Saved as the [raster] table of config.toml; training, eval, render, export previews, the
     # simulator and the viewer all read it from there. `background` is also the colour RGBA
     # images are composited on; `pair_capacity` the initial pair buffer (None: sized from a first
-    # render, and shrunk after an epoch that needs under half of it). The flat names near, far, background, tile_size, chunk_size, batch_chunks,
-    # raster_backward and pair_capacity are accepted as aliases of these fields.
+    # render, and shrunk after an epoch that needs under half of it). The flat names near, far,
+    # background, tile_size, chunk_size, batch_chunks, raster_backward and pair_capacity are
+    # accepted as aliases of these fields.
     raster: RasterConfig = RasterConfig()
 
     # --- bookkeeping ----------------------------------------------------------------------
