@@ -44,7 +44,8 @@ RESULTS = Path(__file__).parent / "results"
 VARIANTS = {"batch32": dict(batch_chunks=32), "batch64": dict(batch_chunks=64), "box3": dict(bounds="box3"),
             "logspace": dict(compositor="logspace", bounds="box3", batch_chunks=16),
             "logspace-autodiff": dict(compositor="logspace", backward="autodiff", bounds="box3", batch_chunks=16),
-            "xla-sort": dict(sort="xla")}
+            "xla-sort": dict(sort="xla"), "skip-chunks": dict(backward_skip="chunks"),
+            "skip-none": dict(backward_skip="none")}
 
 
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
@@ -73,8 +74,9 @@ def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
 
 def _label(r: dict) -> str:
     sort = f", {r['sort']} sort" if r.get("sort", "auto") != "auto" else ""
+    skip = f", skip {r['backward_skip']}" if r.get("backward_skip", "pairs") != "pairs" else ""
     return (f"{r['compositor']} {r['bounds']} {r['backward']}, tile {r['tile_size']}, "
-            f"chunk {r['chunk_size']}x{r['batch_chunks']}{sort}")
+            f"chunk {r['chunk_size']}x{r['batch_chunks']}{sort}{skip}")
 
 
 def chart(rows: list[dict], title: str, path: Path) -> None:
@@ -128,7 +130,8 @@ def main(argv=None) -> int:
             images.append(rgb)
         reference = images if reference is None else reference
         row = dict(compositor=cfg.compositor, bounds=cfg.bounds, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                   backward=cfg.backward, batch_chunks=cfg.batch_chunks, sort=cfg.sort, load_average=os.getloadavg()[0],
+                   backward=cfg.backward, backward_skip=cfg.backward_skip, batch_chunks=cfg.batch_chunks, sort=cfg.sort,
+                   load_average=os.getloadavg()[0],
                    **{k: float(np.median([p[k] for p in per_view])) for k in per_view[0]})
         row["max_abs_diff_vs_default"] = float(max(np.max(np.abs(a - b)) for a, b in zip(images, reference)))
         rows.append(row)

@@ -4,8 +4,10 @@
     python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
     python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
     python benchmarks/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
-    python benchmarks/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live ones
+    python benchmarks/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live pairs
     python benchmarks/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
+    python benchmarks/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
+    python benchmarks/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -17,13 +19,16 @@ holds the live surfels, as the default strategy now does. With `--compare malloc
 same settings and "previous" runs under glibc's default allocation policy, "current" under
 `host_memory.reuse_freed_memory` (what the `ghsplat` command sets). The policy is process-wide
 and cannot be switched back and forth (a trimmed heap faults in again as it regrows), so each
-policy runs in its own child process, twice each, alternating; the rows pool their steps. With
-`--compare skip` both use the same settings and "previous" is traced (and stepped) with the
-carried backward walking every used chunk, as it did before it skipped the chunks that cannot
-change an output. With `--compare pairs` "current" refits the pair buffer as the trainer does
-after an epoch (the bucket of the most pairs a training view needs). Every row also counts the
-page faults per step. The same process also measures the machine's fused exp rate, so
-throughputs can be read against it. Writes
+policy runs in its own child processes (`--rounds`, alternating); the rows pool their steps.
+With `--compare skip` and `--compare pairskip` "previous" sets `raster.backward_skip` to "none"
+(the carried backward walks every used chunk) or "chunks" (the chunks holding alpha > 0 at a
+pixel open at their start, as before pairs were skipped); "current" skips pairs. With `--compare
+rev` "previous" runs the code of git revision `--rev` (checked out into a temporary worktree)
+and "current" this tree's, in child processes as for malloc: a change's whole effect on the step,
+forward and backward. With `--compare pairs` "current" refits the
+pair buffer as the trainer does after an epoch (the bucket of the most pairs a training view
+needs). Every row also counts the page faults per step. The same process also measures the
+machine's fused exp rate, so throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
 
@@ -51,6 +56,7 @@ import numpy as np
 
 from ghsplat_jax import host_memory
 from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.paths import datasets_root
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
 from ghsplat_jax.train.run_dir import load_training_data
@@ -58,6 +64,7 @@ from ghsplat_jax.raster import carried
 from ghsplat_jax.train.state import fit_pool
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
+ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).parent / "results"
 SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
           "lego": TrainConfig(data="nerf_synthetic_lego", downscale=2.0).replace(background=(1.0, 1.0, 1.0))}
@@ -81,17 +88,6 @@ def refit_pairs(session) -> None:
         surfels = render_params(s.params, s.active, cam.world_to_cam)
         needed = max(needed, int(count_pairs(surfels, cam, session.config.raster)[0]))
     session.pair_capacity = trainer.pair_bucket(needed)
-
-
-@contextlib.contextmanager
-def walk_every_chunk():
-    """Trace the carried backward as before it skipped chunks: every used chunk is walked."""
-    skipping = carried.live_chunks
-    carried.live_chunks = lambda live, surfel, valid, tile: skipping(valid[:, 0], surfel, valid, tile)
-    try:
-        yield
-    finally:
-        carried.live_chunks = skipping
 
 
 def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
@@ -154,22 +150,40 @@ def _row(facts: dict, samples: list) -> dict:
                         load_average=os.getloadavg()[0], samples=samples)
 
 
-def time_policies(args, rounds: int = 2) -> dict:
-    """Rows "previous" (glibc's default policy) and "current" (host_memory's), each from `rounds`
-    child processes that time `args.steps` steps of the current config, alternating."""
-    samples, facts = {"previous": [], "current": []}, {}
+def time_children(args, variants: dict, rounds: int = 2) -> dict:
+    """Rows per variant {name: (source tree, extra environment)}, each from `rounds` child
+    processes that time `args.steps` steps of the config with that tree's code, alternating."""
+    samples, facts = {name: [] for name in variants}, {}
     for _ in range(rounds):
-        for name, opt_out in (("previous", "1"), ("current", "0")):
-            cmd = [sys.executable, __file__, "--child", "--steps", str(args.steps), "--scene", args.scene]
+        for name, (tree, env) in variants.items():
+            cmd = [sys.executable, str(Path(tree) / "benchmarks" / "train_speed.py"), "--child", "--steps",
+                   str(args.steps), "--scene", args.scene]
             cmd += [flag for flag, value in (("--config", args.config), ("--checkpoint", args.checkpoint)) if value
-                    for flag in (flag, value)]
-            out = subprocess.run(cmd, env=dict(os.environ, **{host_memory.OPT_OUT: opt_out}), check=True,
-                                 capture_output=True, text=True).stdout
+                    for flag in (flag, str(Path(value).resolve()))]
+            child_env = dict(os.environ, PYTHONPATH=str(tree), GHSPLAT_DATASETS=str(datasets_root()), **env)
+            out = subprocess.run(cmd, env=child_env, cwd=tree, check=True, capture_output=True, text=True).stdout
             row = json.loads(out.strip().splitlines()[-1])
             samples[name] += row.pop("samples")
             facts[name] = {k: row[k] for k in ("step", "surfels", "pool", "pair_capacity")} | dict(
                 peak_rss_mb=max(row["peak_rss_mb"], facts.get(name, {}).get("peak_rss_mb", 0.0)))
     return {name: _row(facts[name], samples[name]) for name in samples}
+
+
+def time_policies(args) -> dict:
+    """Rows "previous" (glibc's default policy) and "current" (host_memory's), this tree's code."""
+    return time_children(args, {"previous": (ROOT, {host_memory.OPT_OUT: "1"}),
+                                "current": (ROOT, {host_memory.OPT_OUT: "0"})}, args.rounds)
+
+
+@contextlib.contextmanager
+def checkout(rev: str):
+    """A temporary detached worktree of this repository at `rev`."""
+    where = Path(tempfile.mkdtemp(prefix="train_speed_rev_")) / "tree"
+    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(where), rev], cwd=ROOT, check=True)
+    try:
+        yield where
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(where)], cwd=ROOT, check=False)
 
 
 def main(argv=None) -> int:
@@ -180,12 +194,16 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairs"), default="raster",
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev"), default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
                          "allocation policy against host_memory's; skip: the carried backward walking every "
-                         "chunk against the chunks that can change an output; pairs: the checkpoint's pair "
-                         "buffer against the one the trainer refits to after an epoch")
+                         "chunk against the live pairs; pairskip: the chunks holding a live pair against the live "
+                         "pairs alone; pairs: the checkpoint's pair "
+                         "buffer against the one the trainer refits to after an epoch; rev: the code of git "
+                         "revision --rev against this tree's, in child processes")
+    ap.add_argument("--rev", default="HEAD", help="with --compare rev: the baseline revision (default HEAD)")
+    ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc or rev: child processes per variant")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
@@ -198,14 +216,21 @@ def main(argv=None) -> int:
         return 0
     if args.compare == "malloc":
         rows, previous = time_policies(args), "glibc's default allocation policy"
+    elif args.compare == "rev":
+        with checkout(args.rev) as tree:
+            rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, check=True, capture_output=True,
+                                 text=True).stdout.strip()
+            rows = time_children(args, {"previous": (tree, {}), "current": (ROOT, {})}, args.rounds)
+        previous = f"the code of revision {rev} ({args.rev})"
     elif args.compare == "pool":
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": compact_pool})
         previous = "the checkpoint's surfel pool as it grew"
-    elif args.compare == "skip":
-        variants = {"previous": config, "current": config}
-        rows = time_steps(variants, dataset, checkpoint, args.steps, contexts={"previous": walk_every_chunk})
-        previous = "the carried backward walking every used chunk"
+    elif args.compare in ("skip", "pairskip"):
+        skip = "none" if args.compare == "skip" else "chunks"
+        variants = {"previous": config.replace(**{"raster.backward_skip": skip}), "current": config}
+        rows = time_steps(variants, dataset, checkpoint, args.steps)
+        previous = f"raster.backward_skip = {skip!r}"
     elif args.compare == "pairs":
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": refit_pairs})

@@ -128,18 +128,26 @@ def test_skipped_outputs_change_nothing_else(distortion):
                                       err_msg=field)
 
 
-def test_backward_skips_closed_chunks_exactly(monkeypatch):
-    """The carried backward walks only the chunks that can change an output (alpha > 0 at a
-    pixel still open when the chunk starts). On an opaque scene many chunks lie behind closed
-    pixels; the gradients equal those of walking every chunk, and those of the log-space
-    compositor differentiated by autodiff (which walks every pair)."""
+def _skip_gradients(monkeypatch, median: bool, skips):
+    """Gradients of one loss on an opaque scene (many pairs behind closed pixels) for each
+    `RasterConfig.backward_skip`, the log-space compositor's by autodiff (which walks every pair),
+    and how many chunks each carried backward walked against the chunks in use."""
     from ghsplat_jax.raster import carried
 
     s, cam = random_scene(600, seed=4, opacity=(0.3, 0.99), scale=(0.2, 0.5), degree=1), camera(32, 24)
     weights = np.random.default_rng(2).normal(size=(cam.height, cam.width, 3))
+    walked = []
+    live_pairs = carried.live_pairs
+
+    def recorded(live, surfel, valid, tile, num_tiles):
+        out = live_pairs(live, surfel, valid, tile, num_tiles)
+        jax.debug.callback(lambda *n: walked.append(tuple(int(x) for x in n)), out[-1], jnp.sum(valid[:, 0]))
+        return out
+
+    monkeypatch.setattr(carried, "live_pairs", recorded)
 
     def grad(**kw):
-        cfg = gs.RasterConfig(tile_size=8, chunk_size=8, batch_chunks=4, **kw)
+        cfg = gs.RasterConfig(tile_size=8, chunk_size=8, batch_chunks=4, median=median, **kw)
 
         def loss(s):
             out = rasterize(s, cam, cfg, 1 << 14)
@@ -147,22 +155,32 @@ def test_backward_skips_closed_chunks_exactly(monkeypatch):
                     + jnp.sum(out.distortion))
         return jax.jit(jax.grad(loss))(s)
 
-    walked = []
-    skipping = carried.live_chunks
+    grads, walks = {}, {}
+    for skip in skips:
+        walked.clear()
+        grads[skip] = grad(backward_skip=skip)
+        walks[skip] = walked[0]
+    return grads, walks, grad(compositor="logspace", backward="autodiff")
 
-    def recorded(live, surfel, valid, tile):
-        jax.debug.callback(lambda *n: walked.append([int(x) for x in n]), jnp.sum(live), jnp.sum(valid[:, 0]))
-        return skipping(live, surfel, valid, tile)
 
-    monkeypatch.setattr(carried, "live_chunks", recorded)
-    g_skip = grad()
-    live, used = walked[0]
-    assert live <= 0.8 * used  # the scene closes enough pixels to exercise the skip
-    g_autodiff = grad(compositor="logspace", backward="autodiff")
-    monkeypatch.setattr(carried, "live_chunks", lambda live, surfel, valid, tile: skipping(valid[:, 0], surfel, valid, tile))
-    g_all = grad()
-    for field in FIELDS:
-        a, b, c = (np.asarray(getattr(g, field)) for g in (g_skip, g_all, g_autodiff))
-        assert np.abs(b).max() > 0, field
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=field)
-        np.testing.assert_allclose(a, c, rtol=1e-2, atol=1e-3 * np.abs(c).max(), err_msg=field)
+def _assert_same_gradients(grads, reference, autodiff):
+    for g in grads:
+        for field in FIELDS:
+            a, b, c = (np.asarray(getattr(x, field)) for x in (g, reference, autodiff))
+            assert np.abs(b).max() > 0, field
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=field)
+            np.testing.assert_allclose(a, c, rtol=1e-2, atol=1e-3 * np.abs(c).max(), err_msg=field)
+
+
+@pytest.mark.parametrize("median", [True, False])
+def test_backward_skips_exactly(monkeypatch, median):
+    """The carried backward walks only the pairs that can change an output (alpha > 0 at a pixel
+    still open before them), cut again into chunks ("pairs"), or the chunks holding alpha > 0 at a
+    pixel open at their start ("chunks"). On an opaque scene that is fewer chunks, pairs fewest,
+    and the gradients equal those of walking every chunk ("none") and those of the log-space
+    compositor differentiated by autodiff (which walks every pair); with the median too, whose
+    gradient finds its pair by layout index."""
+    grads, walks, autodiff = _skip_gradients(monkeypatch, median, ("none", "chunks", "pairs"))
+    (all_chunks, used), (chunk_skip, _), (pair_skip, _) = walks["none"], walks["chunks"], walks["pairs"]
+    assert all_chunks == used and pair_skip < chunk_skip <= 0.8 * used  # enough closed to exercise both
+    _assert_same_gradients([grads["chunks"], grads["pairs"]], grads["none"], autodiff)

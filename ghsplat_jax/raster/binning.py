@@ -131,20 +131,27 @@ def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: i
     tile, pair_surfel = _tile_major(tile, owner, order, grid.num_tiles, n, host_sorts(sort, capacity))
 
     tile_count = jnp.zeros(grid.num_tiles + 1, jnp.int32).at[tile].add(1)[:-1]
+    chunk_tile, chunk_start, chunk_count, chunk_first = chunk_layout(tile_count, chunk_size, num_chunks)
+    return Layout(pair_surfel=pair_surfel, chunk_tile=chunk_tile, chunk_start=chunk_start, chunk_count=chunk_count,
+                  chunk_first=chunk_first, tile_count=tile_count, num_pairs=num_pairs, num_kept=jnp.sum(keep))
+
+
+def chunk_layout(tile_count: jax.Array, chunk_size: int, num_chunks: int):
+    """Chunks of `chunk_size` pairs that never span two tiles, over pairs stored tile after tile
+    (`tile_count` (T,) pairs per tile): each chunk's tile (T for unused chunks), first pair, pair
+    count (0 for unused chunks) and whether it is its tile's first. `num_chunks` must hold every
+    tile's chunks."""
+    num_tiles = tile_count.shape[0]
     tile_start = cumsum(tile_count) - tile_count
     chunks = -(-tile_count // chunk_size)
     chunk_offset = cumsum(chunks) - chunks
     w = jnp.arange(num_chunks, dtype=jnp.int32)
-    chunk_tile = jnp.clip(_owner(chunk_offset, chunks, num_chunks), 0, grid.num_tiles - 1)
+    chunk_tile = jnp.clip(_owner(chunk_offset, chunks, num_chunks), 0, num_tiles - 1)
     used = w < jnp.sum(chunks)
     k = w - chunk_offset[chunk_tile]
     chunk_start = tile_start[chunk_tile] + k * chunk_size
     chunk_count = jnp.where(used, jnp.clip(tile_count[chunk_tile] - k * chunk_size, 0, chunk_size), 0)
-    return Layout(
-        pair_surfel=pair_surfel,
-        chunk_tile=jnp.where(used, chunk_tile, grid.num_tiles),
-        chunk_start=chunk_start, chunk_count=chunk_count, chunk_first=used & (k == 0),
-        tile_count=tile_count, num_pairs=num_pairs, num_kept=jnp.sum(keep))
+    return jnp.where(used, chunk_tile, num_tiles), chunk_start, chunk_count, used & (k == 0)
 
 
 def _sortable_bits(x: jax.Array) -> jax.Array:

@@ -8,15 +8,16 @@ fused expression, so throughput follows the cache level those planes live in. In
   - log(1 - alpha) is summed within each chunk by one small matmul with a triangular matrix;
   - chunk sums are scanned across the batch, restarting at each tile's first chunk, and the
     transmittance of the tile that straddles the batch boundary is carried into the next batch.
-The forward also marks the chunks that can change an output: those with alpha > 0 at a pixel
-still open (T >= T_MIN) when the chunk starts. The others (mostly the chunks behind a tile's
-saturated pixels) add zero weight everywhere and leave every open pixel's transmittance as it
-was, so the backward pass skips them exactly: it walks the marked chunks only, in layout order,
-in batches (on dense greenhouse segments late in training, under half of the chunks). It
+The forward also marks the pairs that can change an output: those with alpha > 0 at a pixel
+still open (T >= T_MIN) before them. The others (mostly pairs behind a tile's saturated pixels,
+or whose alpha stays under 1/255 at the tile's pixel centres) add zero weight everywhere and
+leave every open pixel's transmittance as it was, so the backward pass skips them exactly: it
+walks the marked pairs only, in layout order, cut again into chunks (`live_pairs`;
+`RasterConfig.backward_skip` "chunks" marks whole chunks instead, "none" every pair). It
 recomputes the forward blend with the same carry, carries g . (prefix of w f) the same way
 (d/dalpha_i sum_j w_j f_j = T_i f_i - S_i / (1 - alpha_i) with S_i = total - inclusive prefix),
 and pulls back through the per-pixel evaluation by hand: no autodiff inside the loop, and no
-per-chunk residuals but the median's and the marks.
+residuals but the marks and the median's (per pixel, the layout index of its pair).
 
 Each surfel is stored (and gathered per pair, batch by batch) as the homography of its ray
 transform about the filter centre c: the pixel-plane cross product k x l is linear in the pixel,
@@ -37,7 +38,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ghsplat_jax.raster.binning import tile_corner
+from ghsplat_jax.raster.binning import chunk_layout, cumsum, tile_corner
 from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Z, Static, feature_columns,
                                           local_pixels, ndc_depth, segmented_exclusive_cumsum)
 from ghsplat_jax.raster.project import Projected
@@ -110,9 +111,11 @@ def _segmented_carry(chunk_totals, first, carry):
     return before, before[-1] + chunk_totals[-1]
 
 
-def _blend(alpha, log_t_carry, first):
-    """Transmittance before each pair, inclusion and weights (K, B, P); the next carry; and
-    whether each chunk can change an output (B,): alpha > 0 at a pixel still open before it."""
+def _blend(alpha, log_t_carry, first, skip: str = "none"):
+    """Transmittance before each pair, inclusion and weights (K, B, P); the next carry; and the
+    backward's marks (K, B) (`Static.backward_skip`): "pairs", whether each pair can change an
+    output (alpha > 0 at a pixel still open before it); "chunks", whether its chunk holds alpha > 0
+    at a pixel open at the chunk's start; "none", all True."""
     log1m = jnp.log(1.0 - alpha)  # log1p costs twice as much on XLA:CPU; alpha <= 0.99 keeps this exact enough
     within = _cumsum_k(log1m)
     log_t0, carry = _segmented_carry(within[-1], first, log_t_carry)
@@ -122,17 +125,20 @@ def _blend(alpha, log_t_carry, first):
     t_before = jnp.exp(log_before)
     included = (alpha > 0) & (log_after >= LOG_T_MIN)
     weight = jnp.where(included, alpha * t_before, 0.0)
-    # A pixel closed at the chunk's start stays closed with or without the chunk's pairs.
-    live = jnp.any((log_t0 >= LOG_T_MIN) & (within[-1] < 0), axis=-1)
+    # A pixel closed before a pair stays closed with or without it.
+    if skip == "pairs":
+        live = jnp.any((alpha > 0) & (log_before >= LOG_T_MIN), axis=-1)
+    elif skip == "chunks":
+        live = jnp.broadcast_to(jnp.any((log_t0 >= LOG_T_MIN) & (within[-1] < 0), axis=-1), alpha.shape[:2])
+    else:
+        live = jnp.ones(alpha.shape[:2], bool)
     return t_before, included, weight, log_before, jnp.maximum(carry, LOG_T_FLOOR), live
 
 
 def _last_median(included, log_before):
-    """One-hot (K, B, P) of the last pair with T > 0.5 in each chunk, and whether there is one."""
-    flag = included & (log_before > LOG_HALF)
-    k = jnp.arange(flag.shape[0])[:, None, None]
-    last = jnp.max(jnp.where(flag, k, -1), axis=0)
-    return flag & (k == last[None]), last >= 0
+    """Index within its chunk (B, P) of the last pair with T > 0.5 at each pixel, -1 for none."""
+    k = jnp.arange(included.shape[0])[:, None, None]
+    return jnp.max(jnp.where(included & (log_before > LOG_HALF), k, -1), axis=0)
 
 
 def _slice(x, i, batch):
@@ -199,23 +205,25 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
         log_t, totals, z_last, selected, live = state
         f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
         alpha, z, _ = _evaluate(f, *_offsets(corner, _local_points(offsets, t, st)), v, st)
-        _, included, weight, log_before, log_t, batch_live = _blend(alpha, log_t, fst)
-        live = jax.lax.dynamic_update_slice_in_dim(live, batch_live, i * batch, 0)
+        _, included, weight, log_before, log_t, batch_live = _blend(alpha, log_t, fst, st.backward_skip)
+        live = jax.lax.dynamic_update_slice_in_dim(live, batch_live.T, i * batch, 0)
         totals = totals.at[t].add(_pixel_sums(weight, z, f, st), mode="drop")
-        if st.median:
-            last, any_last = _last_median(included, log_before)
-            z_last = jax.lax.dynamic_update_slice_in_dim(z_last, jnp.sum(jnp.where(last, z, 0.0), 0), i * batch, 0)
-            chunk_id = i * batch + jnp.arange(batch, dtype=jnp.int32)
-            selected = selected.at[t].max(jnp.where(any_last, chunk_id[:, None], -1), mode="drop")
+        if st.median:  # per pixel, the layout index (chunk x K + k) of the last pair with T > 0.5
+            k_last = _last_median(included, log_before)
+            z_here = jnp.sum(jnp.where(jnp.arange(z.shape[0])[:, None, None] == k_last[None], z, 0.0), 0)
+            z_last = jax.lax.dynamic_update_slice_in_dim(z_last, z_here, i * batch, 0)
+            pair_id = (i * batch + jnp.arange(batch, dtype=jnp.int32))[:, None] * z.shape[0] + k_last
+            selected = selected.at[t].max(jnp.where(k_last >= 0, pair_id, -1), mode="drop")
         return log_t, totals, z_last, selected, live
 
     median_rows = num_chunks if st.median else 1
     init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, len(feature_columns(st)), pixels)),
             jnp.zeros((median_rows, pixels)), jnp.full((st.num_tiles, pixels), -1, jnp.int32),
-            jnp.zeros(num_chunks, bool))
+            jnp.zeros(tile.shape + (surfel.shape[1],), bool))
     _, totals, z_last, selected, live = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
     totals = _all_features(jnp.swapaxes(totals, 1, 2), st)              # (T, P, F)
-    median = jnp.where(selected >= 0, z_last[jnp.maximum(selected, 0), jnp.arange(pixels)[None]], 0.0)
+    chunk = jnp.maximum(selected, 0) // surfel.shape[1]
+    median = jnp.where(selected >= 0, z_last[chunk, jnp.arange(pixels)[None]], 0.0)
     return (totals, median), (totals, selected, live)
 
 
@@ -235,17 +243,24 @@ def _fwd(st, table, surfel, valid, tile, first, offsets):
     return outputs, (table, surfel, valid, tile, offsets, totals, selected, live)
 
 
-def live_chunks(live, surfel, valid, tile):
-    """The chunks the backward walks: the live ones in layout order, then padding (valid False).
-    Returns their layout index (for the median's chunk ids), surfels, valid, tile and first
-    flags (recomputed: a tile's first chunks may be skipped), and how many are live."""
-    w = live.shape[0]
-    order = jnp.nonzero(live, size=w, fill_value=w - 1)[0]
-    num_live = jnp.sum(live.astype(jnp.int32))
-    kept = jnp.arange(w) < num_live
-    t = tile[order]
-    first = kept & jnp.concatenate([jnp.ones(1, bool), t[1:] != t[:-1]])
-    return order, surfel[order], valid[order] & kept[:, None], t, first, num_live
+def live_pairs(live, surfel, valid, tile, num_tiles: int):
+    """The pairs the backward walks: the marked ones (`live` (W, K)), in layout order, cut again
+    into chunks of K that never span two tiles. Returns surfels, valid and each pair's layout
+    index (W, K; W x K where unused), tile and first flags (W,), and how many chunks are used.
+    A pair that cannot change an output (alpha > 0 only at pixels closed before it) adds no
+    weight and moves no open pixel's transmittance, and a pixel is always closed by a pair that
+    can, so walking the others alone gives each of their gradients; its own gradient is zero."""
+    w, k = surfel.shape
+    keep = live & valid
+    tile_count = jnp.zeros(num_tiles + 1, jnp.int32).at[tile].add(jnp.sum(keep, 1, dtype=jnp.int32))[:-1]
+    flat = keep.reshape(-1)
+    slot = jnp.where(flat, cumsum(flat.astype(jnp.int32)) - 1, w * k)
+    index = jnp.zeros(w * k, jnp.int32).at[slot].set(jnp.arange(w * k, dtype=jnp.int32), mode="drop")
+    chunk_tile, chunk_start, chunk_count, first = chunk_layout(tile_count, k, w)
+    index = index[jnp.clip(chunk_start[:, None] + jnp.arange(k), 0, w * k - 1)]
+    used = jnp.arange(k)[None] < chunk_count[:, None]
+    return (surfel.reshape(-1)[index], used, jnp.where(used, index, w * k), chunk_tile, first,
+            jnp.sum((chunk_count > 0).astype(jnp.int32)))
 
 
 def _pullback(f, corner, local, aux, d_alpha, d_z):
@@ -288,7 +303,7 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
 
 def _bwd(st: Static, residuals, cotangents):
     table, surfel, valid, tile, offsets, totals, selected, live = residuals
-    order, surfel, valid, tile, first, num_live = live_chunks(live, surfel, valid, tile)
+    surfel, valid, pair_id, tile, first, num_live = live_pairs(live, surfel, valid, tile, st.num_tiles)
     g_totals, g_median = cotangents
     pixels = st.pixels
     batch = st.batch_chunks
@@ -329,11 +344,9 @@ def _bwd(st: Static, residuals, cotangents):
         one_minus = 1.0 - alpha
         d_alpha = jnp.where(included, (t_before * h * one_minus - after) / one_minus, 0.0)
         d_z = weight * sum(g_z) if g_z else jnp.zeros_like(weight)
-        if st.median:
-            last, _ = _last_median(included, log_before)
-            chunk_id = _slice(order, i, batch)
-            median_here = (selected[t] == chunk_id[:, None])[None]
-            d_z = d_z + jnp.where(last & median_here, g_median[t][None], 0.0)
+        if st.median:  # the pixel's median pair, found by its layout index
+            here = _slice(pair_id, i, batch).T[..., None] == selected[t][None]
+            d_z = d_z + jnp.where(here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
         g_const = jnp.concatenate([g[:, c:c + 1] for c in const_planes], axis=1)  # (B, 6 or 3, P)
         d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const)            # (K, B, 6 or 3)

@@ -52,6 +52,7 @@ class Static:
     distortion: bool = True   # the NDC depth sums of the distortion term are wanted (likewise)
     depth_normal: bool = True  # the depth and normal sums are wanted (likewise)
     samples: int = 0          # sample slots per tile (`samples.PixelSamples`); 0: every pixel of the tile
+    backward_skip: str = "pairs"  # `RasterConfig.backward_skip` (the carried compositor's)
 
     @property
     def pixels(self) -> int:

@@ -31,6 +31,9 @@ class RasterConfig:
     compositor: str = "carried"            # "carried" (one evaluation per pair, transmittance carried
                                            # across batches) or "logspace" (two-pass, the ablation)
     backward: str = "custom_vjp"           # "custom_vjp" (analytic) or "autodiff" (checkpointed; logspace only)
+    backward_skip: str = "pairs"           # what the carried backward leaves out, all exactly: "pairs" that
+                                           # cannot change an output (alpha > 0 only at pixels closed before
+                                           # them), whole "chunks" of such pairs, or "none"
     backend: str = "tiled"                 # "tiled" (this rasterizer) or "dense" (naive per-tile baseline)
     median: bool = True                    # compute median_depth (False: zeros, and faster)
     distortion: bool = True                # compute distortion (False: zeros, and faster)
@@ -51,6 +54,8 @@ class RasterConfig:
             raise ValueError(f"bounds must be 'tight' or 'box3', got {self.bounds!r}")
         if self.compositor not in ("carried", "logspace"):
             raise ValueError(f"compositor must be 'carried' or 'logspace', got {self.compositor!r}")
+        if self.backward_skip not in ("pairs", "chunks", "none"):
+            raise ValueError(f"backward_skip must be 'pairs', 'chunks' or 'none', got {self.backward_skip!r}")
         if self.backward == "autodiff" and self.compositor != "logspace":
             raise ValueError("backward='autodiff' differentiates the logspace compositor: "
                              "set compositor='logspace' with it")

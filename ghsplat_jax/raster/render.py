@@ -122,7 +122,7 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
     p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
     st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
                           cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion, cfg.depth_normal,
-                          0 if samples is None else samples.slots)
+                          0 if samples is None else samples.slots, cfg.backward_skip)
     layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
                                _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",
                                None if samples is None else samples.boxes, cfg.sort)
