@@ -25,10 +25,10 @@ With `--compare skip` and `--compare pairskip` "previous" sets `raster.backward_
 pixel open at their start, as before pairs were skipped); "current" skips pairs. With `--compare
 rev` "previous" runs the code of git revision `--rev` (checked out into a temporary worktree)
 and "current" this tree's, in child processes as for malloc: a change's whole effect on the step,
-forward and backward. With `--compare pairs` "current" refits the
-pair buffer as the trainer does after an epoch (the bucket of the most pairs a training view
-needs). Every row also counts the page faults per step. The same process also measures the
-machine's fused exp rate, so throughputs can be read against it. Writes
+forward and backward. With `--compare pairs` "current" refits the pair buffer as the trainer
+does after an epoch (the bucket of the most pairs a training view needs). Every row also counts
+the page faults per step. The same process also measures the machine's fused exp rate, so
+throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
 """
 
@@ -60,7 +60,6 @@ from ghsplat_jax.paths import datasets_root
 from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config
 from ghsplat_jax.train.run_dir import load_training_data
-from ghsplat_jax.raster import carried
 from ghsplat_jax.train.state import fit_pool
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
@@ -194,14 +193,15 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev"), default="raster",
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev"),
+                    default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
                          "allocation policy against host_memory's; skip: the carried backward walking every "
-                         "chunk against the live pairs; pairskip: the chunks holding a live pair against the live "
-                         "pairs alone; pairs: the checkpoint's pair "
-                         "buffer against the one the trainer refits to after an epoch; rev: the code of git "
-                         "revision --rev against this tree's, in child processes")
+                         "chunk against the live pairs; pairskip: the chunks holding a live pair against the "
+                         "live pairs alone; pairs: the checkpoint's pair buffer against the one the trainer "
+                         "refits to after an epoch; rev: the code of git revision --rev against this tree's, "
+                         "in child processes")
     ap.add_argument("--rev", default="HEAD", help="with --compare rev: the baseline revision (default HEAD)")
     ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc or rev: child processes per variant")
     args = ap.parse_args(argv)
