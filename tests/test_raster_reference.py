@@ -128,15 +128,19 @@ def test_skipped_outputs_change_nothing_else(distortion):
                                       err_msg=field)
 
 
-def _skip_gradients(monkeypatch, median: bool, skips):
-    """Gradients of one loss on an opaque scene (many pairs behind closed pixels) for each
-    `RasterConfig.backward_skip`, the log-space compositor's by autodiff (which walks every pair),
-    and how many chunks each carried backward walked against the chunks in use."""
+@pytest.mark.parametrize("median", [True, False])
+def test_backward_skips_exactly(monkeypatch, median):
+    """The carried backward walks only the pairs that can change an output (alpha > 0 at a pixel
+    still open before them), cut again into chunks ("pairs"), or the chunks holding alpha > 0 at a
+    pixel open at their start ("chunks"). On an opaque scene that is fewer chunks, pairs fewest,
+    and the gradients equal those of walking every chunk ("none") and those of the log-space
+    compositor differentiated by autodiff (which walks every pair); with the median too, whose
+    gradient finds its pair by layout index."""
     from ghsplat_jax.raster import carried
 
     s, cam = random_scene(600, seed=4, opacity=(0.3, 0.99), scale=(0.2, 0.5), degree=1), camera(32, 24)
     weights = np.random.default_rng(2).normal(size=(cam.height, cam.width, 3))
-    walked = []
+    walked = []  # (chunks walked, chunks in use) per traced backward
     live_pairs = carried.live_pairs
 
     def recorded(live, surfel, valid, tile, num_tiles):
@@ -156,31 +160,16 @@ def _skip_gradients(monkeypatch, median: bool, skips):
         return jax.jit(jax.grad(loss))(s)
 
     grads, walks = {}, {}
-    for skip in skips:
+    for skip in ("none", "chunks", "pairs"):
         walked.clear()
         grads[skip] = grad(backward_skip=skip)
         walks[skip] = walked[0]
-    return grads, walks, grad(compositor="logspace", backward="autodiff")
-
-
-def _assert_same_gradients(grads, reference, autodiff):
-    for g in grads:
-        for field in FIELDS:
-            a, b, c = (np.asarray(getattr(x, field)) for x in (g, reference, autodiff))
-            assert np.abs(b).max() > 0, field
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=field)
-            np.testing.assert_allclose(a, c, rtol=1e-2, atol=1e-3 * np.abs(c).max(), err_msg=field)
-
-
-@pytest.mark.parametrize("median", [True, False])
-def test_backward_skips_exactly(monkeypatch, median):
-    """The carried backward walks only the pairs that can change an output (alpha > 0 at a pixel
-    still open before them), cut again into chunks ("pairs"), or the chunks holding alpha > 0 at a
-    pixel open at their start ("chunks"). On an opaque scene that is fewer chunks, pairs fewest,
-    and the gradients equal those of walking every chunk ("none") and those of the log-space
-    compositor differentiated by autodiff (which walks every pair); with the median too, whose
-    gradient finds its pair by layout index."""
-    grads, walks, autodiff = _skip_gradients(monkeypatch, median, ("none", "chunks", "pairs"))
     (all_chunks, used), (chunk_skip, _), (pair_skip, _) = walks["none"], walks["chunks"], walks["pairs"]
     assert all_chunks == used and pair_skip < chunk_skip <= 0.8 * used  # enough closed to exercise both
-    _assert_same_gradients([grads["chunks"], grads["pairs"]], grads["none"], autodiff)
+    autodiff = grad(compositor="logspace", backward="autodiff")
+    for skip in ("chunks", "pairs"):
+        for field in FIELDS:
+            a, b, c = (np.asarray(getattr(g, field)) for g in (grads[skip], grads["none"], autodiff))
+            assert np.abs(b).max() > 0, field
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=f"{skip} {field}")
+            np.testing.assert_allclose(a, c, rtol=1e-2, atol=1e-3 * np.abs(c).max(), err_msg=f"{skip} {field}")
