@@ -68,6 +68,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--name", required=True, help="results file name (without extension)")
+    ap.add_argument("--machine", help="where the run ran, when not on this machine (recorded as given)")
     args = ap.parse_args(argv)
     records = []
     for line in (args.run / STATS_NAME).read_text().splitlines():
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
             continue  # a line cut short by a stop
     config = tomllib.loads((args.run / "config.toml").read_text())
     summary = summarize(records, int(config.get("steps", 30000)))
-    summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"))
+    summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"),
+                   raster=config.get("raster"), machine=args.machine)
     write_json(RESULTS / f"{args.name}.json", summary)
     state = "finished" if summary["finished"] else f"{summary['steps_done']} of {summary['schedule_steps']} steps"
     chart(summary, f"{args.run.name}: {state}, {summary['surfels']} surfels, {summary['elapsed_s'] / 3600:.2f} h",

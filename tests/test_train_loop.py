@@ -275,3 +275,39 @@ def test_compacted_pool_steps_like_the_full_one_and_densification_end_compacts()
     done, _, _ = strategy.refine(None, big, strategy.init_state(len(live)), first_round)
     assert done.capacity == capacity_bucket(len(live)) < big.capacity
     np.testing.assert_array_equal(np.asarray(done.params.means[:len(live)]), np.asarray(full.params.means)[live])
+
+
+def _dot_precisions(jaxpr) -> list:
+    """The precision of every dot_general in a jaxpr, its sub-jaxprs (loops, conds, jits) included."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append(eqn.params["precision"])
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                sub = getattr(sub, "jaxpr", sub)  # a ClosedJaxpr holds its Jaxpr
+                if hasattr(sub, "eqns"):
+                    found += _dot_precisions(sub)
+    return found
+
+
+def test_every_matrix_product_of_the_step_asks_for_float32():
+    """A GPU runs float32 products as TF32 by default, which broke the exactness tests on an
+    H100 (alpha off by 3.6e-3): every product of the step, the compositor's hand-written backward
+    and the SSIM blur included, must name full float32 precision (on a CPU it changes nothing)."""
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.trainer import step_raster_config
+    from raster_scenes import random_scene
+
+    view = dataset().train[0]
+    image, cam = jnp.asarray(view.image), view.camera
+    params, active = pad_params(random_scene(64, seed=2, degree=1), 128)
+    optimizers, step = make_train_step(CONFIG)
+    state = new_state(params, active, optimizers)
+    jaxpr = jax.make_jaxpr(lambda s: step(s, image, cam.K, cam.world_to_cam, jnp.float32(1e-4),
+                                          step_raster_config(CONFIG, 16384), cam.width, cam.height))(state)
+    precisions = _dot_precisions(jaxpr.jaxpr)
+    assert len(precisions) >= 8  # the compositor's forward and backward, projection, SH and SSIM
+    highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
+    assert all(p == highest for p in precisions), precisions

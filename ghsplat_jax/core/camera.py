@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.core.precision import FLOAT32
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -41,14 +43,14 @@ class Camera:
     @property
     def center(self) -> jax.Array:
         """Camera centre in world coordinates."""
-        return -jnp.einsum("...ji,...j->...i", self.rotation, self.translation)
+        return -jnp.einsum("...ji,...j->...i", self.rotation, self.translation, precision=FLOAT32)
 
     def scaled(self, factor: float) -> "Camera":
         """The same view at `factor` times the resolution (pixel-centre convention kept)."""
         width, height = int(round(self.width * factor)), int(round(self.height * factor))
         sx, sy = width / self.width, height / self.height
         scale = jnp.diag(jnp.array([sx, sy, 1.0], jnp.float32))
-        return Camera(scale @ self.K, self.world_to_cam, width, height)
+        return Camera(jnp.matmul(scale, self.K, precision=FLOAT32), self.world_to_cam, width, height)
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ghsplat_jax.core.precision import FLOAT32
+
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
@@ -38,7 +40,7 @@ def evaluate(sh_dc: jnp.ndarray, sh_rest: jnp.ndarray, dirs: jnp.ndarray, degree
     """Colour (..., 3) = SH(dirs) + 0.5, clamped at 0; uses the first `degree` bands only."""
     k = (degree + 1) ** 2
     coeffs = jnp.concatenate([sh_dc[..., None, :], sh_rest[..., : k - 1, :]], axis=-2)
-    colour = jnp.einsum("...k,...kc->...c", basis(dirs, degree), coeffs)
+    colour = jnp.einsum("...k,...kc->...c", basis(dirs, degree), coeffs, precision=FLOAT32)
     return jnp.maximum(colour + 0.5, 0.0)
 
 

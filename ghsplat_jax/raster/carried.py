@@ -38,6 +38,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.raster.binning import chunk_layout, cumsum, tile_corner
 from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Z, Static, feature_columns,
                                           local_pixels, ndc_depth, segmented_exclusive_cumsum)
@@ -96,7 +97,7 @@ def _cumsum_k(x: jax.Array) -> jax.Array:
     """Inclusive cumulative sum over the leading (chunk) axis as one matmul."""
     k = x.shape[0]
     tri = jnp.tril(jnp.ones((k, k), x.dtype))
-    return (tri @ x.reshape(k, -1)).reshape(x.shape)
+    return jnp.matmul(tri, x.reshape(k, -1), precision=FLOAT32).reshape(x.shape)
 
 
 def _lead(first: jax.Array) -> jax.Array:
@@ -286,9 +287,9 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
     xl, yl = local
     basis = jnp.stack([jnp.ones_like(xl), xl, yl], axis=-1)             # (P, 3), or (B, S, 3) for samples
     if basis.ndim == 2:
-        against = lambda plane: plane @ basis
+        against = lambda plane: jnp.matmul(plane, basis, precision=FLOAT32)
     else:
-        against = lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis)
+        against = lambda plane: jnp.einsum("kbp,bpc->kbc", plane, basis, precision=FLOAT32)
     s = jnp.stack([against(plane) for plane in (g_p0, g_p1, g_p2, g_filter)])  # (4, K, B, 3)
     ox, oy = corner
     total, sx, sy = s[..., 0], s[..., 1] + ox * s[..., 0], s[..., 2] + oy * s[..., 0]
@@ -349,7 +350,7 @@ def _bwd(st: Static, residuals, cotangents):
             d_z = d_z + jnp.where(here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
         g_const = jnp.concatenate([g[:, c:c + 1] for c in const_planes], axis=1)  # (B, 6 or 3, P)
-        d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const)            # (K, B, 6 or 3)
+        d_const = jnp.einsum("kbp,bcp->kbc", weight, g_const, precision=FLOAT32)  # (K, B, 6 or 3)
         if not st.depth_normal:
             d_const = jnp.pad(d_const, ((0, 0), (0, 0), (0, 3)))           # no normal gradient
         d_rows = jnp.concatenate([jnp.moveaxis(d_geometry, 0, -1), d_const], axis=-1).swapaxes(0, 1)

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.raster.binning import tile_corner
 from ghsplat_jax.raster.project import evaluate_pixels
 
@@ -112,7 +113,7 @@ def ndc_depth(z: jax.Array, st: Static) -> jax.Array:
 def pixel_sums(weight, z, color, normal, st: Static) -> jax.Array:
     """(P, F) sums of w f over a chunk: [A, rgb, z, normal, m, m^2]."""
     m = ndc_depth(z, st)
-    const = weight.T @ jnp.concatenate([color, normal], axis=1)   # (P, 6)
+    const = jnp.matmul(weight.T, jnp.concatenate([color, normal], axis=1), precision=FLOAT32)  # (P, 6)
     per_pixel = lambda f: jnp.sum(weight * f, axis=0)[:, None]
     return jnp.concatenate([per_pixel(1.0), const[:, :3], per_pixel(z), const[:, 3:],
                             per_pixel(m), per_pixel(m * m)], axis=1)
@@ -229,7 +230,8 @@ def _custom_bwd(st, residuals, cotangents):
         m = ndc_depth(z, st)
         # h = g . f for every (surfel, pixel): the output change per unit weight.
         h = (g_a + g_z * z + g_m * m + g_m2 * m * m
-             + cp_w.color @ g_rgb.T + cp_w.normal @ g_n.T)
+             + jnp.matmul(cp_w.color, g_rgb.T, precision=FLOAT32)
+             + jnp.matmul(cp_w.normal, g_n.T, precision=FLOAT32))
         after = after_start_w - jnp.cumsum(weight * h, axis=0)
         d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
         dm_dz = st.far / (st.far - st.near) * st.near / (z * z)
@@ -237,8 +239,9 @@ def _custom_bwd(st, residuals, cotangents):
         last, _ = _last_median(included, t_before)
         d_z += jnp.where(last & (selected[tile_w] == w)[None], g_median[tile_w][None], 0.0)
         d_M, d_center, d_opacity, d_depth = pullback((d_alpha, d_z))
-        return ChunkParams(M=d_M, center=d_center, opacity=d_opacity, color=weight @ g_rgb,
-                           normal=weight @ g_n, depth=d_depth)
+        return ChunkParams(M=d_M, center=d_center, opacity=d_opacity,
+                           color=jnp.matmul(weight, g_rgb, precision=FLOAT32),
+                           normal=jnp.matmul(weight, g_n, precision=FLOAT32), depth=d_depth)
 
     chunk_id = jnp.arange(tile.shape[0], dtype=jnp.int32)
     d_cp = _map(chunk_grad, (cp, valid, tile, log_t0, after_start, chunk_id), st, remat=False,

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core import quaternions, sh
 from ghsplat_jax.core.camera import Camera
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.surfels import Surfels
 
 CUTOFF = 3.0                       # box and ellipse at 3 sigma
@@ -74,7 +75,7 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
 
     R_world = quaternions.to_rotation_matrix(quat)                 # columns t_u, t_v, n
     R_wc, t_wc = cam.world_to_cam[:3, :3], cam.world_to_cam[:3, 3]
-    mu_c = means @ R_wc.T + t_wc
+    mu_c = jnp.matmul(means, R_wc.T, precision=FLOAT32) + t_wc
     tangents_c = _times(R_wc, R_world[:, :, :2]) * scales[:, None, :]
     local = jnp.concatenate([tangents_c, mu_c[:, :, None]], axis=2)  # [s_u t_u | s_v t_v | mu]
     M = _times(cam.K, local)

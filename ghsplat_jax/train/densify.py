@@ -14,6 +14,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState
@@ -101,7 +102,7 @@ def densify_and_prune(state: TrainState, key: jax.Array, max_new: jax.Array, pru
     rot = to_rotation_matrix(q)  # (cap,3,3): columns t_u, t_v, normal
     scales = jnp.exp(params.log_scales)
     eps = jax.random.normal(key, (2, cap, 2), params.means.dtype)
-    offsets = jnp.einsum("nij,knj->kni", rot[:, :, :2], eps * scales[None])  # (2,cap,3)
+    offsets = jnp.einsum("nij,knj->kni", rot[:, :, :2], eps * scales[None], precision=FLOAT32)  # (2,cap,3)
     split_log_scales = params.log_scales - math.log(p.split_scale_div)
     s2 = split[:, None]
     in_place = dataclasses.replace(

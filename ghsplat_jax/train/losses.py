@@ -6,6 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.core.precision import FLOAT32
+
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 _C1 = 0.01**2
@@ -41,7 +43,7 @@ def _blur_last_axis(x: jax.Array, block: int = 32) -> jax.Array:
     window = jnp.concatenate([blocks(0)[..., :r], blocks(r), blocks(block + r)[..., :r]], axis=-1)
     offset = np.arange(block + 2 * r)[:, None] - np.arange(block)[None] - r
     band = np.where(np.abs(offset) <= r, kernel[np.clip(offset + r, 0, 2 * r)], 0.0).astype(np.float32)
-    return (window @ jnp.asarray(band)).reshape(lead + (nb * block,))[..., :n]
+    return jnp.matmul(window, jnp.asarray(band), precision=FLOAT32).reshape(lead + (nb * block,))[..., :n]
 
 
 def _blur_rows(x: jax.Array) -> jax.Array:

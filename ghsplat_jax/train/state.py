@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.surfels import Surfels
 from ghsplat_jax.raster.render import capacity_bucket
 
@@ -214,7 +215,7 @@ def render_params(params: Surfels, active: jax.Array, world_to_cam: jax.Array) -
     """Parameters to render: free slots are moved behind the camera (culled before binning,
     so they take no tile pairs) and made transparent; their gradients are zero."""
     R, t = world_to_cam[:3, :3], world_to_cam[:3, 3]
-    center = -R.T @ t
+    center = -jnp.matmul(R.T, t, precision=FLOAT32)
     behind = center - R[2]  # one unit behind the camera along its optical axis
     a = active[:, None]
     return dataclasses.replace(

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import densify, optim
@@ -325,8 +326,8 @@ def mcmc_noise(state: TrainState, key: jax.Array, scale: jax.Array) -> TrainStat
     q, _ = safe_normalize(p.quats)
     tuv = to_rotation_matrix(q)[:, :, :2]  # (cap,3,2)
     eps = jax.random.normal(key, p.means.shape, p.means.dtype)
-    local = jnp.einsum("nji,nj->ni", tuv, eps) * jnp.exp(2.0 * p.log_scales)
-    noise = jnp.einsum("nij,nj->ni", tuv, local) * (gate * scale)[:, None]
+    local = jnp.einsum("nji,nj->ni", tuv, eps, precision=FLOAT32) * jnp.exp(2.0 * p.log_scales)
+    noise = jnp.einsum("nij,nj->ni", tuv, local, precision=FLOAT32) * (gate * scale)[:, None]
     means = jnp.where(state.active[:, None], p.means + noise, p.means)
     return dataclasses.replace(state, params=dataclasses.replace(p, means=means))
 
