@@ -16,7 +16,9 @@ steps from that checkpoint instead and adds a window to fusion_profile_step.json
 in the compositor's forward loop, its backward loop and the rest of the step (by source file),
 the loop iterations, the nanoseconds of thread time per evaluated pair-pixel in each pass beside
 the machine's fused exp rate measured in the same process, and how long one or more ops ran at
-once. `--one-core` pins the process to one core, so two windows say what the other cores buy.
+once. Each of its top ops also lists the JAX operations it fuses (`jax_ops`, from the HLO's
+op_name metadata): the compositor's custom backward keeps only its call's source line.
+`--one-core` pins the process to one core, so two windows say what the other cores buy.
 """
 
 from __future__ import annotations
@@ -89,16 +91,35 @@ def source_of(hlo: str) -> dict[str, list[str]]:
         frames = dict(re.findall(r"^(\d+) \{file_location_id=(\d+)", between("StackFrames", "\n\n"), re.M))
     except (IndexError, KeyError):
         return {}
+    out = {}
+    for name, text in _op_texts(hlo).items():
+        ids = re.findall(r"stack_frame_id=(\d+)", text)
+        counts = collections.Counter(locs[frames[i]] for i in ids if frames.get(i) in locs)
+        out[name] = [loc for loc, _ in counts.most_common()]  # the lines most of the op comes from first
+    return out
+
+
+def _op_texts(hlo: str) -> dict[str, str]:
+    """{op name: its instruction's line, or for a fusion the body of the computation it calls}."""
     bodies = dict(re.findall(r"\n%([\w.\-]+) [^\n]*\{\n(.*?)\n\}", hlo, re.S))
     out = {}
     for line in hlo.splitlines():
         m = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = ", line)
-        if not m:
-            continue
-        call = re.search(r"calls=%([\w.\-]+)", line)
-        ids = re.findall(r"stack_frame_id=(\d+)", bodies.get(call.group(1), "") if call else line)
-        counts = collections.Counter(locs[frames[i]] for i in ids if frames.get(i) in locs)
-        out[m.group(1)] = [loc for loc, _ in counts.most_common()]  # the lines most of the op comes from first
+        if m:
+            call = re.search(r"calls=%([\w.\-]+)", line)
+            out[m.group(1)] = bodies.get(call.group(1), "") if call else line
+    return out
+
+
+def jax_ops_of(hlo: str) -> dict[str, list[str]]:
+    """{op name: [JAX operation, ...]} from the op_name metadata of the instructions an op fuses,
+    the most frequent first, each the last two parts of its name path (for example
+    "kbp,bcp->kbc/dot_general"). Where a custom VJP's backward keeps only the call's source line,
+    these still tell its ops apart."""
+    out = {}
+    for name, text in _op_texts(hlo).items():
+        counts = collections.Counter("/".join(n.split("/")[-2:]) for n in re.findall(r'op_name="([^"]*)"', text))
+        out[name] = [op for op, _ in counts.most_common()]
     return out
 
 
@@ -197,7 +218,7 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
     v = view_order(config.seed, step0, session.images.shape[0])
     hlo = session.step_fn.lower(state0, session.images[v], session.Ks[v], session.w2cs[v], jnp.float32(1e-4), rcfg,
                                 session.width, session.height).compile().as_text()
-    bodies, owner, sources = _loop_bodies(hlo), _owners(hlo), source_of(hlo)
+    bodies, owner, sources, jax_ops = _loop_bodies(hlo), _owners(hlo), source_of(hlo), jax_ops_of(hlo)
 
     op_ms, op_calls, by_file = collections.Counter(), collections.Counter(), collections.Counter()
     for start, end, _, name in events:
@@ -226,8 +247,9 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
                 exp_rate_per_s=rate, exp_ns_per_evaluation=1e9 / rate,
                 rest_of_step_ms_by_file={k: round(v, 2) for k, v in by_file.most_common()},
                 ops_at_once_per_step={k: v / steps for k, v in busy_threads(events).items()},
-                top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3), calls_per_step=round(op_calls[region, name], 1),
-                              source=sources.get(name, [])[:3]) for (region, name), t in op_ms.most_common(40)])
+                top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3),
+                              calls_per_step=round(op_calls[region, name], 1), source=sources.get(name, [])[:3],
+                              jax_ops=jax_ops.get(name, [])[:3]) for (region, name), t in op_ms.most_common(40)])
 
 
 def main_step(args) -> int:

@@ -34,9 +34,13 @@ def test_ops_are_timed_and_traced_to_their_source(tmp_path):
     names = {name for *_, name in events}
     assert any(name.startswith("sort") for name in names), names
     assert not any("::" in name for name in names)  # runtime bookkeeping is not an op
-    sources = fp.source_of(f.lower(x).compile().as_text())
+    hlo = f.lower(x).compile().as_text()
+    sources = fp.source_of(hlo)
     here = Path(__file__).name
     assert any(loc.startswith(f"{here}:") for name in names for loc in sources.get(name, [])), sources
+    jax_ops = fp.jax_ops_of(hlo)  # what each op computes, where a custom VJP's backward loses its lines
+    assert any(op.endswith("sort") for name in names for op in jax_ops.get(name, [])), jax_ops
+    assert any(op.endswith("exp") for name in names for op in jax_ops.get(name, [])), jax_ops
 
 
 def test_busy_threads_counts_overlapping_ops():
