@@ -253,6 +253,7 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, tile_xy: tupl
     ts = grid.tile_size
     rows = _tile_test_table(p)[surfel]
     cx, cy, reach, bounded, *conic, inv_xx, inv_yy, mx, my, has_min = (rows[:, i] for i in range(15))
+    bounded, has_min = bounded > 0, has_min > 0  # stored as 0/1 in the float table
     if boxes is None:
         x0 = (tile_xy[0] * ts).astype(jnp.float32) + (0.5 - TILE_MARGIN) - cx
         y0 = (tile_xy[1] * ts).astype(jnp.float32) + (0.5 - TILE_MARGIN) - cy
@@ -266,13 +267,13 @@ def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, tile_xy: tupl
     q = lambda dx, dy: _conic(conic, dx, dy) <= CONIC_TOLERANCE
     _, qxy, _, qx, qy, _ = conic
     # The conic's minimum: inside the rectangle, or on one of its edges (1D minima of a quadratic).
-    inside = (has_min > 0) & (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
+    inside = has_min & (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
     on_edge = jnp.zeros_like(inside)
     for y in (y0, y1):
         on_edge |= q(jnp.clip(-(qxy * y + qx) * inv_xx, x0, x1), y)
     for x in (x0, x1):
         on_edge |= q(x, jnp.clip(-(qxy * x + qy) * inv_yy, y0, y1))
-    return (bounded == 0) | in_disc | inside | on_edge
+    return ~bounded | in_disc | inside | on_edge
 
 
 def count_pairs(p: Projected, width: int, height: int, grid: TileGrid,
