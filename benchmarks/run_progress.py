@@ -4,8 +4,9 @@ by window, surfel count and the training-view PSNR against wall time.
     python benchmarks/run_progress.py runs/fern30k --name train_fern_progress
 
 Training PSNR is of the one view each step trains on (smoothed over 100 steps), not a test
-metric: evaluate the run (`ghsplat eval RUN`) for test PSNR. Writes
-benchmarks/results/NAME.json and NAME.png.
+metric: evaluate the run (`ghsplat eval RUN`) for test PSNR; a finished run's metrics.json is
+copied in. Stalls are the steps that took over STALL_S (compiles, densification rounds,
+checkpoints). Writes benchmarks/results/NAME.json and NAME.png.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from ghsplat_jax.train.run_dir import STATS_NAME
 RESULTS = Path(__file__).parent / "results"
 WINDOWS = [(0, 500), (500, 1000), (1000, 1500), (1500, 3000), (3000, 7000), (7000, 7100), (15000, 15100),
            (29000, 29100)]
+STALL_S = 1.0
 
 
 def summarize(records: list[dict], schedule_steps: int) -> dict:
@@ -36,10 +38,14 @@ def summarize(records: list[dict], schedule_steps: int) -> dict:
             windows[f"{lo}-{hi}"] = dict(median_seconds_per_step=float(np.median(dt[inside])),
                                          surfels=int(np.median([r["num_surfels"] for r, m in zip(records, inside) if m])),
                                          steps_measured=int(inside.sum()))
+    stall = dt > STALL_S
+    stalls = dict(count=int(stall.sum()), seconds=round(float(dt[stall].sum()), 1),
+                  steps=step[stall].tolist(), step_seconds=[round(float(v), 1) for v in dt[stall]])
     k = 100
     smooth = np.convolve(np.nan_to_num(psnr), np.ones(k) / k, mode="valid") if len(psnr) >= k else psnr
     return dict(steps_done=int(step[-1]), schedule_steps=schedule_steps, finished=int(step[-1]) >= schedule_steps,
                 elapsed_s=float(elapsed[-1]), surfels=int(records[-1]["num_surfels"]), windows=windows,
+                first_step_seconds=float(elapsed[0]), stalls=stalls,
                 curve=dict(step=step[k - 1:].tolist()[::50], elapsed_s=elapsed[k - 1:].tolist()[::50],
                            train_psnr_smoothed=[round(float(v), 3) for v in smooth[::50]],
                            surfels=[r["num_surfels"] for r in records[k - 1:]][::50]))
@@ -80,11 +86,15 @@ def main(argv=None) -> int:
     summary = summarize(records, int(config.get("steps", 30000)))
     summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"),
                    raster=config.get("raster"), machine=args.machine)
+    if (args.run / "metrics.json").is_file():
+        summary["metrics"] = json.loads((args.run / "metrics.json").read_text())
     write_json(RESULTS / f"{args.name}.json", summary)
     state = "finished" if summary["finished"] else f"{summary['steps_done']} of {summary['schedule_steps']} steps"
-    chart(summary, f"{args.run.name}: {state}, {summary['surfels']} surfels, {summary['elapsed_s'] / 3600:.2f} h",
-          RESULTS / f"{args.name}.png")
-    print(json.dumps({k: summary[k] for k in ("steps_done", "elapsed_s", "surfels", "windows")}, indent=1))
+    title = f"{args.run.name}: {state}, {summary['surfels']} surfels, {summary['elapsed_s'] / 3600:.2f} h"
+    if "metrics" in summary:
+        title += f", test PSNR {summary['metrics']['test']['psnr']:.2f} dB"
+    chart(summary, title, RESULTS / f"{args.name}.png")
+    print(json.dumps({k: summary[k] for k in ("steps_done", "elapsed_s", "surfels", "windows", "stalls")}, indent=1))
     return 0
 
 
