@@ -394,3 +394,43 @@ def test_pair_buffer_shrinks_after_an_epoch_that_needs_under_half_of_it():
     for _ in range(4):
         _Session._refit_pairs(fixed, 1000)
     assert fixed.pair_capacity == 1 << 21
+
+
+def test_accelerators_grow_buffers_by_doubling_and_keep_them(monkeypatch):
+    """On a CPU buffers grow to the renderer's buckets (at most 25% spare); on an accelerator,
+    where a recompile costs a thousand steps, the pool grows to powers of two (at least doubling)
+    and the pair buffer is never shrunk."""
+    import types
+
+    from ghsplat_jax.train.state import growth_bucket
+    from ghsplat_jax.train.trainer import _Session
+
+    assert [growth_bucket(n) for n in (21_000, 40_000, 327_000)] == [24_576, 40_960, 327_680]
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert [growth_bucket(n) for n in (21_000, 40_000, 327_000, 1 << 15)] == [1 << 15, 1 << 16, 1 << 19, 1 << 15]
+    s = types.SimpleNamespace(config=TrainConfig(), images=np.zeros((2, 1)), pair_capacity=1 << 21,
+                              epoch_pairs=0, epoch_steps=0)
+    for _ in range(4):
+        _Session._refit_pairs(s, 1000)
+    assert s.pair_capacity == 1 << 21
+
+
+def test_pool_growth_follows_the_backend(monkeypatch):
+    """The default strategy grows a full pool to growth_bucket of what its candidates need."""
+    from ghsplat_jax.raster.render import capacity_bucket
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.strategy import make_strategy
+    from raster_scenes import random_scene
+
+    optimizers, _ = make_train_step(TrainConfig())
+    params, active = pad_params(random_scene(3000, seed=1, degree=0), 3000)
+    state = new_state(params, active, optimizers)
+    state = dataclasses.replace(state, grad_accum=jnp.ones(3000), grad_count=jnp.ones(3000))  # all candidates
+    strategy = make_strategy(TrainConfig())
+    grown = {}
+    for backend in ("cpu", "gpu"):
+        monkeypatch.setattr(jax, "default_backend", lambda b=backend: b)
+        grown[backend] = strategy._ensure_capacity(None, state, 3000).capacity
+    need = math.ceil(6000 / (1.0 - TrainConfig().capacity_headroom))  # 3000 live + 3000 new slots
+    assert grown == dict(cpu=capacity_bucket(need), gpu=8192) and grown["cpu"] == 7168

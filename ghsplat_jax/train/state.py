@@ -204,6 +204,21 @@ def compact(state: TrainState, capacity: int) -> TrainState:
     return grow(_map_rows(state, state.capacity, lambda leaf: leaf[rows]), capacity)
 
 
+def compiles_cost_more_than_slots() -> bool:
+    """Whether buffers should grow for fewer recompiles rather than fewer spare slots: on an
+    accelerator one recompile of the step (10-20 s on an H100) costs as much as a thousand fern
+    steps, and spare slots cost little; on a CPU every slot adds work to every step."""
+    return jax.default_backend() != "cpu"
+
+
+def growth_bucket(n: int) -> int:
+    """The size a growing buffer takes to hold `n`: the renderer's next bucket (1, 1.25, 1.5 or
+    1.75 x 2^k, at most 25% spare) on a CPU, the next power of two on an accelerator, where
+    each growth then at least doubles it (fern's pool grew 14 times in buckets on an H100)."""
+    bucket = capacity_bucket(n)
+    return 1 << (bucket - 1).bit_length() if compiles_cost_more_than_slots() else bucket
+
+
 def fit_pool(state: TrainState) -> TrainState:
     """`state` compacted to the smallest pool bucket that holds its live surfels (the pair
     buffer's buckets, 1-1.75 x 2^k), or itself where that bucket is no smaller."""

@@ -42,9 +42,8 @@ import numpy as np
 
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
-from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import densify, optim
-from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, fit_pool, grow, render_params
+from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, fit_pool, grow, growth_bucket, render_params
 
 log = logging.getLogger("ghsplat.train")
 
@@ -187,10 +186,10 @@ class DefaultStrategy(Strategy):
         cap = state.capacity
         if need <= cap * (1.0 - c.capacity_headroom):
             return state
-        # Pools take the pair buffer's buckets (1, 1.25, 1.5 or 1.75 x 2^k): one compile each, and a
-        # pool at most 1.25x what it must hold, where doubling left up to half of the per-surfel
-        # work (projection, SH, Adam) to spare slots.
-        new_cap = capacity_bucket(math.ceil(need / (1.0 - c.capacity_headroom)))
+        # On a CPU pools take the pair buffer's buckets (1, 1.25, 1.5 or 1.75 x 2^k): one compile
+        # each, and a pool at most 1.25x what it must hold, where doubling left up to half of the
+        # per-surfel work (projection, SH, Adam) to spare slots. Accelerators double (state.py).
+        new_cap = growth_bucket(math.ceil(need / (1.0 - c.capacity_headroom)))
         log.info("surfel pool %d -> %d slots", cap, new_cap)
         return grow(state, new_cap)
 

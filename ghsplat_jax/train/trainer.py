@@ -29,8 +29,8 @@ from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
 from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, load_run_checkpoint,
                                        load_training_data, peak_rss_mb)
-from ghsplat_jax.train.state import (TrainState, initial_surfels, needs_random_init, new_state, pad_params,
-                                    random_init_box)
+from ghsplat_jax.train.state import (TrainState, compiles_cost_more_than_slots, initial_surfels, needs_random_init,
+                                    new_state, pad_params, random_init_box)
 from ghsplat_jax.train.step import make_train_step
 from ghsplat_jax.train.strategy import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
 
@@ -267,12 +267,14 @@ class _Session:
         set-up work per slot of the buffer, and a run from random points starts with several
         times the pairs it settles at (lego kept a 2M-pair buffer for 290-460k pairs). Growth on
         overflow doubles, so the factor of two keeps the buffer from see-sawing; each change
-        compiles the step once more. A capacity set in the config is left as it grows."""
+        compiles the step once more, which is why an accelerator keeps its buffer
+        (`compiles_cost_more_than_slots`). A capacity set in the config is left as it grows."""
         self.epoch_pairs, self.epoch_steps = max(self.epoch_pairs, pairs), self.epoch_steps + 1
         if self.epoch_steps < self.images.shape[0]:
             return
         fit = pair_bucket(self.epoch_pairs)
-        if self.config.raster.pair_capacity is None and 2 * fit <= self.pair_capacity:
+        if (self.config.raster.pair_capacity is None and not compiles_cost_more_than_slots()
+                and 2 * fit <= self.pair_capacity):
             log.info("at most %d tile-surfel pairs per view over the last epoch; pair capacity %d -> %d",
                      self.epoch_pairs, self.pair_capacity, fit)
             self.pair_capacity = fit
