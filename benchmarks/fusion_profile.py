@@ -45,6 +45,7 @@ from ghsplat_jax.io_utils import write_json
 from sim_speed import greenhouse_surfels  # noqa: E402  (benchmarks/ is the script's folder)
 
 DEFAULT_OUT = str(Path(__file__).parent / "results" / "fusion_profile.json")
+TOP_WRITTEN = 40  # ops written per profile (by time)
 # XLA:CPU runs compiled ops on its intra-op pool, and small programs inline on the client's thread.
 OP_THREADS = ("tf_XLAEigen", "tf_XLAPjRtCpuClient")
 
@@ -249,7 +250,7 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
                 ops_at_once_per_step={k: v / steps for k, v in busy_threads(events).items()},
                 top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3),
                               calls_per_step=round(op_calls[region, name], 1), source=sources.get(name, [])[:3],
-                              jax_ops=jax_ops.get(name, [])[:3]) for (region, name), t in op_ms.most_common(40)])
+                              jax_ops=jax_ops.get(name, [])[:3]) for (region, name), t in op_ms.most_common(TOP_WRITTEN)])
 
 
 def main_step(args) -> int:
