@@ -5,16 +5,11 @@ kills it 20 times)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
+from benchmark_scripts import load_benchmark
 
 
 def _benchmark():
-    path = Path(__file__).parents[1] / "benchmarks" / "crash_resume.py"
-    spec = importlib.util.spec_from_file_location("crash_resume", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("crash_resume")
 
 
 def test_sigkill_at_random_moments_always_resumes(tmp_path):

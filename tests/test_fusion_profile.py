@@ -1,25 +1,16 @@
 """benchmarks/fusion_profile.py: compiled ops timed from a real profiler trace, traced back to
 their source lines, the count of ops running at once, and the training profile's loop regions."""
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import pytest
+from benchmark_scripts import load_benchmark
 
 
 def _fusion_profile():
-    path = Path(__file__).parents[1] / "benchmarks" / "fusion_profile.py"
-    spec = importlib.util.spec_from_file_location("fusion_profile", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(path.parent))  # it imports sim_speed from its folder
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(path.parent))
-    return module
+    return load_benchmark("fusion_profile")
 
 
 def test_ops_are_timed_and_traced_to_their_source(tmp_path):

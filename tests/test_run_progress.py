@@ -1,20 +1,12 @@
 """benchmarks/run_progress.py: a run's windows, stalls and (when finished) its test metrics."""
 
-import importlib.util
 import json
-from pathlib import Path
 
-
-def _run_progress():
-    path = Path(__file__).parents[1] / "benchmarks" / "run_progress.py"
-    spec = importlib.util.spec_from_file_location("run_progress", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from benchmark_scripts import load_benchmark
 
 
 def test_stalls_windows_and_metrics(tmp_path, monkeypatch):
-    rp = _run_progress()
+    rp = load_benchmark("run_progress")
     monkeypatch.setattr(rp, "RESULTS", tmp_path / "results")
     run = tmp_path / "run"
     run.mkdir()

@@ -5,21 +5,17 @@ quick). benchmarks/sim_soak.py measures the full 10,000 frames with the rasteriz
 from __future__ import annotations
 
 import importlib.util
-from pathlib import Path
 
 import pytest
 
 pytest.importorskip("psutil")
 
+from benchmark_scripts import load_benchmark
 from test_sim_fakes import box_room_renderer
 
 
 def _benchmark():
-    path = Path(__file__).parents[1] / "benchmarks" / "sim_soak.py"
-    spec = importlib.util.spec_from_file_location("sim_soak", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("sim_soak")
 
 
 def test_memory_stays_flat_over_a_long_simulation():
