@@ -4,8 +4,9 @@ by window, surfel count and the training-view PSNR against wall time.
     python benchmarks/run_progress.py runs/fern30k --name train_fern_progress
 
 Training PSNR is of the one view each step trains on (smoothed over 100 steps), not a test
-metric: evaluate the run (`ghsplat eval RUN`) for test PSNR; a finished run's metrics.json is
-copied in. Stalls are the steps that took over STALL_S (compiles, densification rounds,
+metric: a run trained with `--set test_curve_every=N` also has the test views' PSNR every N
+steps (test_curve.jsonl), charted against the same training time; a finished run's metrics.json
+is copied in. Stalls are the steps that took over STALL_S (compiles, densification rounds,
 checkpoints). Writes benchmarks/results/NAME.json and NAME.png.
 """
 
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.io_utils import save_figure, write_json
-from ghsplat_jax.train.run_dir import STATS_NAME
+from ghsplat_jax.train.run_dir import STATS_NAME, TEST_CURVE_NAME
 
 RESULTS = Path(__file__).parent / "results"
 WINDOWS = [(0, 500), (500, 1000), (1000, 1500), (1500, 3000), (3000, 7000), (7000, 7100), (15000, 15100),
@@ -57,15 +58,29 @@ def chart(summary: dict, title: str, path: Path) -> None:
     c = summary["curve"]
     fig = Figure(figsize=(10, 4))
     ax1, ax2 = fig.subplots(1, 2)
-    ax1.plot(np.array(c["elapsed_s"]) / 3600, c["train_psnr_smoothed"])
-    ax1.set_xlabel("wall time (h)")
-    ax1.set_ylabel("training-view PSNR (dB, 100-step mean)")
+    ax1.plot(np.array(c["elapsed_s"]) / 3600, c["train_psnr_smoothed"], label="training view (100-step mean)")
+    if summary.get("test_curve"):
+        t = summary["test_curve"]
+        ax1.plot(np.array(t["elapsed_s"]) / 3600, t["psnr"], "o-", ms=3, label="test views")
+    ax1.legend()
+    ax1.set_xlabel("training time (h)")
+    ax1.set_ylabel("PSNR (dB)")
     ax2.plot(c["step"], c["surfels"])
     ax2.set_xlabel("step")
     ax2.set_ylabel("surfels")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    records = []
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue  # a line cut short by a stop
+    return records
 
 
 def main(argv=None) -> int:
@@ -76,16 +91,15 @@ def main(argv=None) -> int:
     ap.add_argument("--name", required=True, help="results file name (without extension)")
     ap.add_argument("--machine", help="where the run ran, when not on this machine (recorded as given)")
     args = ap.parse_args(argv)
-    records = []
-    for line in (args.run / STATS_NAME).read_text().splitlines():
-        try:
-            records.append(json.loads(line))
-        except ValueError:
-            continue  # a line cut short by a stop
+    records = read_jsonl(args.run / STATS_NAME)
     config = tomllib.loads((args.run / "config.toml").read_text())
     summary = summarize(records, int(config.get("steps", 30000)))
     summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"),
                    raster=config.get("raster"), machine=args.machine)
+    curve = read_jsonl(args.run / TEST_CURVE_NAME)
+    if curve:
+        keys = ("step", "elapsed_s", "psnr", "l1", "num_surfels")
+        summary["test_curve"] = {k: [p.get(k) for p in curve] for k in keys}
     if (args.run / "metrics.json").is_file():
         summary["metrics"] = json.loads((args.run / "metrics.json").read_text())
     write_json(RESULTS / f"{args.name}.json", summary)

@@ -44,7 +44,9 @@ def run_training(name: str, data: str, overrides: dict, steps: int, out: Path, e
     from ghsplat_jax.io_utils import atomic_write
 
     out.mkdir(parents=True, exist_ok=True)
-    cfg = dict(overrides, data=data, steps=steps, progress=False, scale_schedule=steps < 30_000, **extra)
+    # 30 test-curve points over the run (its PSNR against training time); --set overrides it
+    cfg = dict(overrides, data=data, steps=steps, progress=False, scale_schedule=steps < 30_000,
+               test_curve_every=max(steps // 30, 1)) | extra
     cfg_path = out / "bench_config.toml"
     with atomic_write(cfg_path, "w") as fh:
         fh.write(tomli_w.dumps(cfg))

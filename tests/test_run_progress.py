@@ -1,4 +1,4 @@
-"""benchmarks/run_progress.py: a run's windows, stalls and (when finished) its test metrics."""
+"""benchmarks/run_progress.py: a run's windows, stalls, test curve and (when finished) its test metrics."""
 
 import json
 
@@ -17,9 +17,13 @@ def test_stalls_windows_and_metrics(tmp_path, monkeypatch):
     (run / "stats.jsonl").write_text("\n".join(lines) + "\n{\"step\": 15")  # a line cut short by a stop
     (run / "config.toml").write_text('data = "x"\nsteps = 1500\n')
     (run / "metrics.json").write_text(json.dumps({"test": {"psnr": 25.0}}))
+    (run / "test_curve.jsonl").write_text("".join(json.dumps(dict(step=s, elapsed_s=s / 100, psnr=20.0 + s / 500,
+                                                                 l1=0.1, num_surfels=100 + s)) + "\n"
+                                                  for s in (500, 1000, 1500)))
     assert rp.main([str(run), "--name", "p"]) == 0
     out = json.loads((tmp_path / "results" / "p.json").read_text())
     assert out["finished"] and out["first_step_seconds"] == 5.0
     assert out["stalls"] == dict(count=1, seconds=3.0, steps=[1200], step_seconds=[3.0])
     assert abs(out["windows"]["1000-1500"]["median_seconds_per_step"] - 0.01) < 1e-9
     assert out["metrics"]["test"]["psnr"] == 25.0 and (tmp_path / "results" / "p.png").is_file()
+    assert out["test_curve"]["step"] == [500, 1000, 1500] and out["test_curve"]["psnr"] == [21.0, 22.0, 23.0]

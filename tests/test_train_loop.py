@@ -311,3 +311,40 @@ def test_every_matrix_product_of_the_step_asks_for_float32():
     assert len(precisions) >= 8  # the compositor's forward and backward, projection, SH and SSIM
     highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
     assert all(p == highest for p in precisions), precisions
+
+
+def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path, monkeypatch):
+    """With test_curve_every, training writes the test views' metrics every so many steps to
+    test_curve.jsonl, continued across a resume without repeated or missing points; its last
+    point (the padded pool rendered with colour only) equals the final evaluation's test PSNR,
+    and its time is left out of the training seconds."""
+    import time
+
+    from ghsplat_jax.eval import evaluate
+    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.train.run_dir import TEST_CURVE_NAME
+
+    slow = 2.0  # each evaluation made this much slower, so leaving it out shows in the step times
+    real = evaluate.test_curve_metrics
+
+    def slowed(dataset, config):
+        measure = real(dataset, config)
+        return lambda *args: (time.sleep(slow), measure(*args))[1]
+
+    monkeypatch.setattr(evaluate, "test_curve_metrics", slowed)
+    config = CONFIG.replace(test_curve_every=10, save_test_renders=False)
+    out = tmp_path / "run"
+    train_and_evaluate(config, out, dataset=dataset(), until=15)   # checkpoints at 10 and 15
+    metrics = train_and_evaluate(config, out, dataset=dataset(), resume=True)
+    curve = [json.loads(line) for line in (out / TEST_CURVE_NAME).read_text().splitlines()]
+    assert [p["step"] for p in curve] == [10, 20, 30]
+    assert all(p["num_views"] == len(dataset().test) > 0 and np.isfinite(p["psnr"]) for p in curve)
+    assert curve[-1]["psnr"] == pytest.approx(metrics["test"]["psnr"], abs=1e-3)
+    assert curve[-1]["l1"] == pytest.approx(metrics["test"]["l1"], rel=1e-4)
+    stats = {r["step"]: r for r in map(json.loads, (out / STATS_NAME).read_text().splitlines())}
+    assert curve[0]["eval_seconds"] >= slow
+    assert stats[11]["elapsed_s"] - stats[10]["elapsed_s"] < slow  # (no compile falls on step 11)
+    assert curve[0]["elapsed_s"] == pytest.approx(stats[10]["elapsed_s"], abs=0.1)
+    assert metrics["train_seconds"] == pytest.approx(stats[30]["elapsed_s"], abs=0.5)
+    with pytest.raises(Exception, match="test_curve_every"):
+        TrainConfig(test_curve_every=-1)

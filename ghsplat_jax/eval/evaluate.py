@@ -114,6 +114,27 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     return metrics
 
 
+def test_curve_metrics(dataset, config):
+    """`measure(params, active, pair_capacity)`: the test views' mean metrics (as metrics.json's
+    "test") of a training pool, for the test curve that training writes every
+    `config.test_curve_every` steps. It renders the padded pool (free slots hidden behind each
+    camera, so the image is that of the live surfels) with only colour and alpha, from the
+    training's pair buffer at least: it compiles again only when the pool or a buffer grows."""
+    from ghsplat_jax.raster.render import render
+    from ghsplat_jax.train.state import render_params
+
+    views = list(dataset.test)
+    lean = dataclasses.replace(config.raster, median=False, distortion=False, depth_normal=False)
+
+    def measure(params, active, pair_capacity: int) -> dict:
+        rcfg = dataclasses.replace(lean, pair_capacity=pair_capacity)
+        rows = [image_metrics(render(render_params(params, active, v.camera.world_to_cam), v.camera, rcfg).rgb, v.image)
+                for v in views]
+        return summarize(rows)
+
+    return measure
+
+
 def evaluate_run(run_dir, progress: bool = True) -> dict:
     """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
     checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its

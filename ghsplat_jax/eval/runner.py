@@ -223,6 +223,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
     or when stopped early by `until`)."""
     from ghsplat_jax.eval.evaluate import evaluate as evaluate_fn
+    from ghsplat_jax.eval.evaluate import test_curve_metrics
     from ghsplat_jax.train import train
     from ghsplat_jax.train.run_dir import load_training_data
 
@@ -232,7 +233,8 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
         for p in remove_scratch(out_dir):
             log.info("removed %s, left by an interrupted write", p)
     dataset = dataset if dataset is not None else load_training_data(config)
-    result = train(config, out_dir, dataset=dataset, resume=resume, until=until)
+    test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
+    result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
     if not evaluate or result.steps < config.resolved().steps:
         return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
     return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)

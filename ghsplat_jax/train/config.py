@@ -139,6 +139,10 @@ class TrainConfig:
     progress: bool = True               # tqdm progress bar
     eval_max_train_views: int = 0       # evaluate at most this many training views (0: all)
     save_test_renders: bool = True      # write rgb/depth/normal images of the test views
+    # Evaluate the test views every this many steps while training (0: off), into test_curve.jsonl:
+    # the test PSNR against training time. Only `ghsplat train` and experiment runs, which know the
+    # test views, do it; its time is left out of the run's training seconds.
+    test_curve_every: int = 0
 
     def __post_init__(self):
         from ghsplat_jax.train.strategy import strategy_class
@@ -159,6 +163,8 @@ class TrainConfig:
             raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
             raise ConfigError(f"steps must be >= 0, got {self.steps}")
+        if self.test_curve_every < 0:
+            raise ConfigError(f"test_curve_every must be >= 0 (0: off), got {self.test_curve_every}")
         if self.densify_every < 1:
             raise ConfigError(f"densify_every must be >= 1 (refinement rounds run every this many steps; set "
                               f"densify_until = 0 to turn densification off), got {self.densify_every}")

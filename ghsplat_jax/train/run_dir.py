@@ -23,6 +23,7 @@ import numpy as np
 
 CONFIG_NAME = "config.toml"
 STATS_NAME = "stats.jsonl"
+TEST_CURVE_NAME = "test_curve.jsonl"
 CHECKPOINT_NAME = "checkpoint.npz"
 PLY_NAME = "point_cloud.ply"
 METRICS_NAME = "metrics.json"

@@ -27,8 +27,8 @@ from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
-from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, load_run_checkpoint,
-                                       load_training_data, peak_rss_mb)
+from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, TEST_CURVE_NAME,
+                                       load_run_checkpoint, load_training_data, peak_rss_mb)
 from ghsplat_jax.train.state import (TrainState, compiles_cost_more_than_slots, initial_surfels, needs_random_init,
                                     new_state, pad_params, random_init_box)
 from ghsplat_jax.train.step import make_train_step
@@ -305,6 +305,17 @@ def _truncate_stats(path: Path, last_step: int) -> None:
         fh.write("".join(x + "\n" for x in keep))
 
 
+def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int) -> float:
+    """Evaluate the test views now and append the point to the test curve; returns its seconds."""
+    t = time.perf_counter()
+    point = test_eval(session.state.params, session.state.active, session.pair_capacity)
+    spent = time.perf_counter() - t
+    record = dict(step=step, elapsed_s=round(seconds() - spent, 3), num_surfels=num, eval_seconds=round(spent, 3))
+    curve.write(json.dumps(_jsonable(record | point), allow_nan=False) + "\n")
+    curve.flush()
+    return spent
+
+
 @contextlib.contextmanager
 def _terminate_as_interrupt():
     """Treat SIGTERM (a job scheduler's or `kill`'s stop) like Ctrl-C while training, so it also
@@ -324,10 +335,13 @@ def _terminate_as_interrupt():
 
 
 def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, render_fn=None,
-          until: int | None = None) -> TrainResult:
+          until: int | None = None, test_eval=None) -> TrainResult:
     """Train (or resume) a run into `out_dir`; see the module docstring. Ctrl-C (or SIGTERM)
     saves a checkpoint and raises KeyboardInterrupt. `until`: stop after that step with a
-    checkpoint (no point_cloud.ply), to be resumed later. Sets the process's host memory policy
+    checkpoint (no point_cloud.ply), to be resumed later. `test_eval(params, active,
+    pair_capacity) -> dict`: the test views' metrics, written to test_curve.jsonl every
+    `config.test_curve_every` steps (eval/evaluate.py: test_curve_metrics), its time left out of
+    the training seconds. Sets the process's host memory policy
     (`host_memory.reuse_freed_memory`), as the `ghsplat` command does."""
     from tqdm.auto import tqdm
 
@@ -340,12 +354,18 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     save_config(config, out / CONFIG_NAME)
     start = int(session.state.step)
     t0 = time.perf_counter()
-    seconds = lambda: session.prior_seconds + time.perf_counter() - t0  # noqa: E731
+    paused = 0.0  # seconds spent on the test curve, which are not training time
+    seconds = lambda: session.prior_seconds + time.perf_counter() - t0 - paused  # noqa: E731
     num = int(jnp.sum(session.state.active))
     bar = tqdm(total=config.steps, initial=start, disable=not config.progress, desc="train", dynamic_ncols=True)
     if start:
         _truncate_stats(out / STATS_NAME, start)  # drop steps after the checkpoint: they are redone
     stats = open(out / STATS_NAME, "a" if start else "w")
+    curve = None
+    if test_eval is not None and config.test_curve_every:
+        if start:
+            _truncate_stats(out / TEST_CURVE_NAME, start)
+        curve = open(out / TEST_CURVE_NAME, "a" if start else "w")
     last_t, last_step = time.perf_counter(), start
     step = start
     stop = config.steps if until is None else min(until, config.steps)
@@ -367,17 +387,27 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
                     stats.flush()
                     bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
                     last_t, last_step = now, step
+                if curve is not None and step % config.test_curve_every == 0:
+                    spent = _write_curve_point(curve, test_eval, session, step, seconds, num)
+                    paused += spent
+                    last_t += spent  # nor does the steps-per-second rate count it
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
                     _sync(stats)
+                    if curve is not None:
+                        _sync(curve)
                     session.save(seconds())
         except KeyboardInterrupt:
             _sync(stats)
+            if curve is not None:
+                _sync(curve)
             session.save(seconds())
             log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
                         out / CHECKPOINT_NAME)
             raise
         finally:
             stats.close()
+            if curve is not None:
+                curve.close()
             bar.close()
     if step >= config.steps:
         end_info = session.finish()  # e.g. a final contribution-pruning pass, before the PLY and checkpoint
