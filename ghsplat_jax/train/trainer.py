@@ -313,6 +313,8 @@ def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int) 
     record = dict(step=step, elapsed_s=round(seconds() - spent, 3), num_surfels=num, eval_seconds=round(spent, 3))
     curve.write(json.dumps(_jsonable(record | point), allow_nan=False) + "\n")
     curve.flush()
+    log.info("step %d: test PSNR %.2f dB over %d views (%.1f s to evaluate)", step, point["psnr"], point["num_views"],
+             spent)
     return spent
 
 
