@@ -368,6 +368,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
         if start:
             _truncate_stats(out / TEST_CURVE_NAME, start)
         curve = open(out / TEST_CURVE_NAME, "a" if start else "w")
+    logs = [stats] if curve is None else [stats, curve]  # synced before each checkpoint, closed at the end
     last_t, last_step = time.perf_counter(), start
     step = start
     stop = config.steps if until is None else min(until, config.steps)
@@ -394,22 +395,19 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
                     paused += spent
                     last_t += spent  # nor does the steps-per-second rate count it
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
-                    _sync(stats)
-                    if curve is not None:
-                        _sync(curve)
+                    for fh in logs:
+                        _sync(fh)
                     session.save(seconds())
         except KeyboardInterrupt:
-            _sync(stats)
-            if curve is not None:
-                _sync(curve)
+            for fh in logs:
+                _sync(fh)
             session.save(seconds())
             log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
                         out / CHECKPOINT_NAME)
             raise
         finally:
-            stats.close()
-            if curve is not None:
-                curve.close()
+            for fh in logs:
+                fh.close()
             bar.close()
     if step >= config.steps:
         end_info = session.finish()  # e.g. a final contribution-pruning pass, before the PLY and checkpoint
