@@ -1,5 +1,5 @@
 """Progress of a training run (finished or not) from its stats.jsonl: steps done, seconds per step
-by window, surfel count and the training-view PSNR against wall time.
+by window, surfel count, the training-view PSNR against wall time and the normal loss by step.
 
     python benchmarks/run_progress.py runs/fern30k --name train_fern_progress
 
@@ -43,12 +43,18 @@ def summarize(records: list[dict], schedule_steps: int) -> dict:
     stalls = dict(count=int(stall.sum()), seconds=round(float(dt[stall].sum()), 1),
                   steps=step[stall].tolist(), step_seconds=[round(float(v), 1) for v in dt[stall]])
     k = 100
-    smooth = np.convolve(np.nan_to_num(psnr), np.ones(k) / k, mode="valid") if len(psnr) >= k else psnr
+
+    def smoothed(values):
+        values = np.nan_to_num(np.asarray(values, float))
+        s = np.convolve(values, np.ones(k) / k, mode="valid") if len(values) >= k else values
+        return [round(float(v), 4) for v in s[::50]]
+
     return dict(steps_done=int(step[-1]), schedule_steps=schedule_steps, finished=int(step[-1]) >= schedule_steps,
                 elapsed_s=float(elapsed[-1]), surfels=int(records[-1]["num_surfels"]), windows=windows,
                 first_step_seconds=float(elapsed[0]), stalls=stalls,
                 curve=dict(step=step[k - 1:].tolist()[::50], elapsed_s=elapsed[k - 1:].tolist()[::50],
-                           train_psnr_smoothed=[round(float(v), 3) for v in smooth[::50]],
+                           train_psnr_smoothed=smoothed(psnr),
+                           normal_loss_smoothed=smoothed([r.get("normal") or 0.0 for r in records]),
                            surfels=[r["num_surfels"] for r in records[k - 1:]][::50]))
 
 
@@ -56,8 +62,8 @@ def chart(summary: dict, title: str, path: Path) -> None:
     from matplotlib.figure import Figure
 
     c = summary["curve"]
-    fig = Figure(figsize=(10, 4))
-    ax1, ax2 = fig.subplots(1, 2)
+    fig = Figure(figsize=(14, 4))
+    ax1, ax2, ax3 = fig.subplots(1, 3)
     ax1.plot(np.array(c["elapsed_s"]) / 3600, c["train_psnr_smoothed"], label="training view (100-step mean)")
     if summary.get("test_curve"):
         t = summary["test_curve"]
@@ -68,6 +74,9 @@ def chart(summary: dict, title: str, path: Path) -> None:
     ax2.plot(c["step"], c["surfels"])
     ax2.set_xlabel("step")
     ax2.set_ylabel("surfels")
+    ax3.plot(c["step"], c["normal_loss_smoothed"])
+    ax3.set_xlabel("step")
+    ax3.set_ylabel("normal loss, unweighted (100-step mean)")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)

@@ -159,6 +159,68 @@ def test_depth_normal_agrees_with_rendered_normal_of_a_tilted_surfel():
     assert good < 0.1 < 1.5 < flipped
 
 
+def _facing_surfel(opacity_logit):
+    import ghsplat_jax as gs
+    from ghsplat_jax.core.quaternions import from_rotation_matrix
+
+    rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])  # normal towards -y, at the camera
+    return gs.make_surfels([[0, 0, 0]], quats=[from_rotation_matrix(rot)], log_scales=[[np.log(1.0)] * 2],
+                           opacity_logits=[opacity_logit], sh_dc=[[1, 1, 1]])
+
+
+def test_alpha_masked_normal_loss_gives_uncovered_pixels_no_pull_towards_opacity():
+    import ghsplat_jax as gs
+    from ghsplat_jax.train import losses
+
+    cam = gs.Camera(gs.intrinsics(32, 24, 40), gs.look_at([0, -4, 0], [0, 0, 0]), 32, 24)
+
+    def normal_loss(logit, coverage):
+        s = dataclasses.replace(_facing_surfel(0.0), opacity_logits=jnp.reshape(logit, (1,)))
+        out = gs.render(s, cam, gs.RasterConfig(pair_capacity=64))
+        dn = losses.depth_to_normal(out.depth, cam.K, cam.world_to_cam)
+        return losses.normal_consistency(out.normal, dn, out.alpha, coverage)
+
+    grad = jax.value_and_grad(normal_loss)
+    plain, plain_grad = grad(0.0, None)
+    assert float(plain_grad) < 0  # the 2DGS term: more opacity, lower loss, wherever it is
+    ones, ones_grad = grad(0.0, jnp.ones((24, 32)))
+    assert float(ones) == float(plain) and float(ones_grad) == float(plain_grad)
+    empty, empty_grad = grad(0.0, jnp.zeros((24, 32)))
+    assert float(empty) == 0.0 and float(empty_grad) == 0.0  # an empty image asks for no surface
+
+
+def test_training_images_carry_their_alpha_to_the_step_only_for_the_normal_loss():
+    import ghsplat_jax as gs
+    from ghsplat_jax.data.dataset import View
+    from ghsplat_jax.train.step import LossWeights, _loss
+    from ghsplat_jax.train.trainer import stack_views
+
+    cam = gs.Camera(gs.intrinsics(32, 24, 40), gs.look_at([0, -4, 0], [0, 0, 0]), 32, 24)
+    rgb = np.full((24, 32, 3), 0.5, np.float32)
+    alpha = np.linspace(0, 1, 24 * 32, dtype=np.float32).reshape(24, 32)
+    views = [View("a", cam, rgb, alpha), View("b", cam, rgb)]
+    images = np.asarray(stack_views(views, with_alpha=True)[0])
+    assert images.shape == (2, 24, 32, 4)
+    np.testing.assert_array_equal(images[0, :, :, 3], alpha)
+    np.testing.assert_array_equal(images[1, :, :, 3], 1.0)  # no alpha: covered everywhere
+    assert stack_views(views)[0].shape[-1] == 3
+    assert stack_views(views[1:], with_alpha=True)[0].shape[-1] == 3  # no view has alpha
+
+    w = LossWeights.from_config(dataclasses.replace(CONFIG, normal_from=0))
+    cfg = gs.RasterConfig(pair_capacity=64)
+
+    def loss(image):
+        s = _facing_surfel(0.0)
+        value, aux = _loss(s, jnp.zeros((1, 2)), jnp.ones(1, bool), jnp.asarray(image), cam, 0, w, cfg, gs.render)
+        return float(value), float(aux["l1"]), float(aux["normal"])
+
+    three = loss(rgb)
+    assert three[2] > 0
+    assert loss(np.concatenate([rgb, np.ones((24, 32, 1), np.float32)], 2)) == three
+    no_cover = loss(np.concatenate([rgb, np.zeros((24, 32, 1), np.float32)], 2))
+    assert no_cover[1] == three[1] and no_cover[2] == 0.0  # colour terms unchanged
+
+
 def test_ctrl_c_saves_a_checkpoint(tmp_path, monkeypatch):
     from ghsplat_jax.train import trainer
 

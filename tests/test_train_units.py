@@ -163,6 +163,30 @@ def test_config_overrides_save_and_errors(tmp_path):
     assert not short.scale_schedule and short.normal_from == 700
 
 
+def test_resuming_a_run_saved_before_a_setting_existed_names_it(tmp_path, caplog):
+    import argparse
+
+    from ghsplat_jax.commands import train as train_command
+    from ghsplat_jax.train.config import settings_missing_from
+
+    save_config(TrainConfig(steps=500), tmp_path / "config.toml")
+    assert settings_missing_from(tmp_path / "config.toml") == []
+    text = (tmp_path / "config.toml").read_text()
+    old = "\n".join(line for line in text.splitlines()
+                    if not line.startswith(("normal_loss_alpha_mask", "compositor")))
+    (tmp_path / "config.toml").write_text(old)
+    assert settings_missing_from(tmp_path / "config.toml") == ["normal_loss_alpha_mask", "raster.compositor"]
+
+    parser = argparse.ArgumentParser()
+    train_command.add_arguments(parser)
+    args = parser.parse_args(["--out", str(tmp_path), "--resume", "--set", "normal_loss_alpha_mask=false"])
+    with caplog.at_level("WARNING"):
+        config = train_command.resolve_config(args)
+    assert config.steps == 500 and not config.normal_loss_alpha_mask
+    warned = [r.getMessage() for r in caplog.records if "predates" in r.getMessage()]
+    assert len(warned) == 1 and "raster.compositor" in warned[0] and "normal_loss_alpha_mask" not in warned[0]
+
+
 # --- densification -------------------------------------------------------------------------------
 CAP = 16
 PARAMS = densify.DensifyParams(grad_threshold=2e-4, clone_max_scale=0.1, split_scale_div=1.6, prune_opacity=0.05,

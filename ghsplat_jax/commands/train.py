@@ -32,13 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def resolve_config(args):
-    from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides, load_config
+    from ghsplat_jax.train.config import (ConfigError, TrainConfig, apply_overrides, load_config,
+                                          settings_missing_from)
     from ghsplat_jax.train.run_dir import CONFIG_NAME
 
     out = Path(args.out)
-    config = TrainConfig()
+    config, missing = TrainConfig(), []
     if args.resume and (out / CONFIG_NAME).is_file():
         config = load_config(out / CONFIG_NAME)
+        missing = settings_missing_from(out / CONFIG_NAME)
     if args.config:
         config = load_config(args.config, config)
     overrides = {}
@@ -61,6 +63,11 @@ def resolve_config(args):
         overrides["background"] = (1.0, 1.0, 1.0)
     if args.no_progress:
         overrides["progress"] = False
+    missing = [name for name in missing if name not in overrides]
+    if missing:
+        logging.getLogger("ghsplat.train").warning(
+            "%s predates the settings %s: the resumed run takes their defaults (--set NAME=VALUE keeps an "
+            "earlier behaviour)", out / CONFIG_NAME, ", ".join(missing))
     return apply_overrides(config, overrides, "command line")
 
 

@@ -68,6 +68,10 @@ class TrainConfig:
     lambda_normal: float = 0.05         # rendered normal vs depth-derived normal consistency
     normal_from: int = 7000             # normal loss active from this step
     depth_ratio: float = 0.0            # depth for the normal prior: 0 expected, 1 median (2DGS bounded: 1)
+    # Images with alpha (RGBA, as NeRF-synthetic): the normal loss counts only where the image is
+    # covered. Off is the 2DGS loss everywhere, which on lego grew opaque white sheets in the empty
+    # background after densification ended (test PSNR 33.3 dB at step 15,000, 32.2 at 20,000).
+    normal_loss_alpha_mask: bool = True
 
     # --- initialisation -------------------------------------------------------------------
     init_opacity: float = 0.1           # initial opacity of every surfel
@@ -264,6 +268,11 @@ def _raster_overrides(base: RasterConfig, values: dict, source: str) -> RasterCo
 
 def load_config(path: str | os.PathLike, base: TrainConfig | None = None) -> TrainConfig:
     """Read a TOML (or JSON) file of overrides; a [train] table is used when present."""
+    return apply_overrides(base or TrainConfig(), load_config_table(path), str(path))
+
+
+def load_config_table(path: str | os.PathLike) -> dict:
+    """The table of a TOML (or JSON) config file (its [train] table when it has one)."""
     import tomllib
 
     path = Path(path)
@@ -277,7 +286,17 @@ def load_config(path: str | os.PathLike, base: TrainConfig | None = None) -> Tra
         raise ConfigError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
     if "train" in table and isinstance(table["train"], dict):
         table = table["train"]
-    return apply_overrides(base or TrainConfig(), table, str(path))
+    return table
+
+
+def settings_missing_from(path: str | os.PathLike) -> list[str]:
+    """The settings a saved config file leaves out (`raster.NAME` for rasterizer ones): a file
+    written before they existed, whose run would now take their defaults."""
+    saved = TrainConfig().to_dict()
+    table = load_config_table(path)
+    missing = [k for k in saved if k != "raster" and k not in table]
+    raster = table.get("raster", {})
+    return missing + [f"raster.{k}" for k in saved["raster"] if k not in raster]
 
 
 def save_config(config: TrainConfig, path: str | os.PathLike) -> Path:

@@ -125,8 +125,16 @@ def depth_to_normal(depth: jax.Array, K: jax.Array, world_to_cam: jax.Array) -> 
     return jnp.stack(_normal_planes(depth, K, world_to_cam), axis=-1)
 
 
-def normal_consistency(rendered_normal: jax.Array, depth_normal: jax.Array, alpha: jax.Array) -> jax.Array:
+def normal_consistency(rendered_normal: jax.Array, depth_normal: jax.Array, alpha: jax.Array,
+                       coverage: jax.Array | None = None) -> jax.Array:
     """2DGS normal loss: mean over pixels of 1 - <rendered, depth normal x alpha>; alpha is
-    not differentiated (the prior must not push coverage)."""
+    not differentiated (the prior must not push coverage).
+
+    `coverage` (H,W), the image's own alpha where it has one, weighs each pixel's term. The
+    rendered normal's length is the rendered alpha, so unweighted the term rewards any opacity
+    at all: on an object photographed against an empty background it grows opaque sheets of
+    background colour, which then hide the object from new viewpoints (hbb1/2d-gaussian-splatting
+    issue 85). The pixel count stays the divisor, so covered pixels keep the 2DGS gradient."""
     target = depth_normal * jax.lax.stop_gradient(alpha)[..., None]
-    return jnp.mean(1.0 - jnp.sum(rendered_normal * target, axis=-1))
+    error = 1.0 - jnp.sum(rendered_normal * target, axis=-1)
+    return jnp.mean(error if coverage is None else coverage * error)

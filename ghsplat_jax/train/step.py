@@ -48,6 +48,8 @@ def sh_band_mask(step: jax.Array, w: LossWeights, num_rest: int) -> jax.Array:
 
 
 def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn):
+    """`image` (H,W,3), or (H,W,4) with the image's alpha, which masks the normal loss."""
+    image, coverage = (image, None) if image.shape[-1] == 3 else (image[..., :3], image[..., 3])
     p = render_params(params, active, camera.world_to_cam)
     mask = sh_band_mask(step, w, p.sh_rest.shape[1])
     p = dataclasses.replace(p, sh_rest=p.sh_rest * mask[None, :, None])
@@ -65,7 +67,7 @@ def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, ra
         depth = out.depth if w.depth_ratio == 0 else (
             (1 - w.depth_ratio) * out.depth + w.depth_ratio * out.median_depth)
         dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)
-        normal_loss = losses.normal_consistency(out.normal, dn, out.alpha)
+        normal_loss = losses.normal_consistency(out.normal, dn, out.alpha, coverage)
         loss = loss + jnp.where(step >= w.normal_from, w.lambda_normal, 0.0) * normal_loss
     if w.opacity_reg > 0 or w.scale_reg > 0:
         live = active.astype(jnp.float32)

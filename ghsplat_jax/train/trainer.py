@@ -72,12 +72,23 @@ def pair_bucket(pairs: int) -> int:
     return capacity_bucket(math.ceil(max(pairs, 1) * 1.25))
 
 
-def stack_views(views):
+def stack_views(views, with_alpha: bool = False):
+    """(images (N,H,W,C), Ks, world_to_cams, width, height) of views of one size. `with_alpha`
+    and any view with alpha: C = 4, the image's alpha last (1 for a view without alpha)."""
     sizes = {(v.camera.width, v.camera.height) for v in views}
     if len(sizes) != 1:
         raise ValueError(f"training views must share one image size, got {sorted(sizes)}")
     (w, h), = sizes
-    images = jnp.asarray(np.stack([np.asarray(v.image, np.float32) for v in views]))
+
+    def pixels(v):
+        rgb = np.asarray(v.image, np.float32)
+        if not with_alpha:
+            return rgb
+        alpha = np.ones((h, w), np.float32) if v.alpha is None else np.asarray(v.alpha, np.float32)
+        return np.concatenate([rgb, alpha[:, :, None]], axis=2)
+
+    with_alpha = with_alpha and any(v.alpha is not None for v in views)
+    images = jnp.asarray(np.stack([pixels(v) for v in views]))
     Ks = jnp.asarray(np.stack([np.asarray(v.camera.K, np.float32) for v in views]))
     w2cs = jnp.asarray(np.stack([np.asarray(v.camera.world_to_cam, np.float32) for v in views]))
     return images, Ks, w2cs, w, h
@@ -137,7 +148,8 @@ class _Session:
     def __init__(self, config: TrainConfig, out_dir: Path, dataset, resume: bool, render_fn=None):
         self.config, self.out = config, out_dir
         self.ds = dataset
-        self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(dataset.train)
+        self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(
+            dataset.train, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
         self.extent = float(dataset.scene_extent)
         if not (math.isfinite(self.extent) and self.extent > 0):
             raise ValueError(f"dataset {config.data}: scene extent {self.extent} is not a positive number")
