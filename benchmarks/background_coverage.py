@@ -5,6 +5,9 @@ background colour scores well on its training views and hides the object from ne
 
     python benchmarks/background_coverage.py runs/lego30k --name lego_background_unmasked
 
+`normal_loss_alpha_mask` is recorded as null for a run whose config predates the setting (its
+code had no mask).
+
 Works on finished runs (point_cloud.ply) and unfinished ones (the checkpoint). Writes
 benchmarks/results/NAME.json and NAME.png (ground truth, render, |error| x 4 and rendered alpha
 of the worst test views).
@@ -17,22 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.eval.metrics import COVERED_ABOVE, EMPTY_BELOW, background_cover, image_metrics
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster.render import render
-from ghsplat_jax.train.run_dir import load_run, load_training_data
+from ghsplat_jax.train.config import settings_missing_from
+from ghsplat_jax.train.run_dir import CONFIG_NAME, load_run, load_training_data
 
 RESULTS = Path(__file__).parent / "results"
-EMPTY = 0.01  # image alpha below this is background
-VISIBLE = 0.05  # rendered alpha above this over the background is a visible cover
 PANEL_VIEWS = 3
-
-
-def view_coverage(rgb: np.ndarray, alpha: np.ndarray, view) -> dict:
-    empty = view.alpha < EMPTY
-    mse = float(np.mean((rgb - view.image) ** 2))
-    return dict(name=view.name, psnr=float(-10 * np.log10(max(mse, 1e-12))), background_fraction=float(empty.mean()),
-                background_alpha_mean=float(alpha[empty].mean()) if empty.any() else 0.0,
-                background_covered=float((alpha[empty] > VISIBLE).mean()) if empty.any() else 0.0)
 
 
 def panel(rows: list[np.ndarray], path: Path, title: str) -> None:
@@ -58,18 +53,24 @@ def main(argv: list[str] | None = None) -> int:
     config, surfels, meta, finished = load_run(args.run)
     dataset = load_training_data(config)
     views = dataset.test[: args.views or None]
-    if not views or any(v.alpha is None for v in views):
-        raise SystemExit(f"{args.run}: its test views have no alpha channel; nothing to measure")
+    if not views:
+        raise SystemExit(f"{args.run}: no test views")
     per_view, renders = [], []
     for view in views:
         out = render(surfels, view.camera, config.raster)
         rgb, alpha = np.asarray(out.rgb), np.asarray(out.alpha)
-        per_view.append(view_coverage(rgb, alpha, view))
+        cover = background_cover(alpha, view.alpha)
+        if not cover:
+            raise SystemExit(f"{args.run}: test view {view.name} has no alpha channel or no empty background; "
+                             "nothing to measure")
+        per_view.append(dict(name=view.name, **image_metrics(rgb, view.image), **cover))
         renders.append((rgb, alpha))
     mean = {k: float(np.mean([v[k] for v in per_view])) for k in per_view[0] if k != "name"}
+    predates = settings_missing_from(Path(args.run) / CONFIG_NAME)  # the run's code had no such setting
     result = dict(run=str(args.run), step=config.steps if finished else meta["step"],
-                  finished=finished, surfels=int(surfels.num), normal_loss_alpha_mask=config.normal_loss_alpha_mask,
-                  lambda_normal=config.lambda_normal, empty_below=EMPTY, visible_above=VISIBLE, mean=mean,
+                  finished=finished, surfels=int(surfels.num), config_predates=predates,
+                  normal_loss_alpha_mask=None if "normal_loss_alpha_mask" in predates else config.normal_loss_alpha_mask,
+                  lambda_normal=config.lambda_normal, empty_below=EMPTY_BELOW, covered_above=COVERED_ABOVE, mean=mean,
                   views=per_view)
     RESULTS.mkdir(exist_ok=True)
     write_json(RESULTS / f"{args.name}.json", result)
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.run} at step {result['step']}: test PSNR {mean['psnr']:.2f} dB, background covered "
           f"{100 * mean['background_covered']:.0f}% (worst {PANEL_VIEWS} views)")
     print(f"{args.name}: step {result['step']}, test PSNR {mean['psnr']:.2f} dB, background alpha "
-          f"{mean['background_alpha_mean']:.3f}, covered {100 * mean['background_covered']:.1f}%")
+          f"{mean['background_alpha']:.3f}, covered {100 * mean['background_covered']:.1f}%")
     return 0
 
 

@@ -107,7 +107,7 @@ def main(argv=None) -> int:
                    raster=config.get("raster"), machine=args.machine)
     curve = read_jsonl(args.run / TEST_CURVE_NAME)
     if curve:
-        keys = ("step", "elapsed_s", "psnr", "l1", "num_surfels")
+        keys = ("step", "elapsed_s", "psnr", "l1", "num_surfels", "background_alpha")
         summary["test_curve"] = {k: [p.get(k) for p in curve] for k in keys}
     if (args.run / "metrics.json").is_file():
         summary["metrics"] = json.loads((args.run / "metrics.json").read_text())

@@ -83,6 +83,25 @@ def test_metrics_and_summary():
     assert summarize([])["num_views"] == 0
 
 
+def test_background_cover_counts_only_the_pixels_the_image_leaves_empty():
+    import numpy as np
+
+    from ghsplat_jax.eval.metrics import background_cover
+
+    image_alpha = np.zeros((4, 8), np.float32)
+    image_alpha[:, :4] = 1.0  # the object fills the left half
+    rendered = np.zeros((4, 8), np.float32)
+    rendered[:, :4] = 1.0
+    rendered[0, 4:] = 0.5  # one background row half covered
+    rendered[1, 4:] = 0.02  # one below the visible threshold
+    cover = background_cover(rendered, image_alpha)
+    assert cover == {"background_alpha": pytest.approx((0.5 * 4 + 0.02 * 4) / 16), "background_covered": 0.25}
+    assert background_cover(rendered, None) == {} and background_cover(rendered, np.ones((4, 8))) == {}
+    rows = [{"psnr": 20, "l1": 0.1, "ssim": 0.5, **cover}, {"psnr": 30, "l1": 0.3, "ssim": 0.7, **cover}]
+    assert summarize(rows)["background_covered"] == 0.25
+    assert "background_alpha" not in summarize(rows[:1] + [{"psnr": 30, "l1": 0.3, "ssim": 0.7}])
+
+
 def test_experiment_files_parse(tmp_path):
     from pathlib import Path
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.eval.metrics import image_metrics, summarize
+from ghsplat_jax.eval.metrics import background_cover, image_metrics, summarize
 from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
@@ -91,7 +91,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             jax.block_until_ready(out.rgb)
             dt = time.perf_counter() - t
             times.append(dt)
-            m = image_metrics(out.rgb, v.image)
+            m = image_metrics(out.rgb, v.image) | background_cover(out.alpha, v.alpha)
             if not all(math.isfinite(x) for x in m.values()):
                 raise FloatingPointError(f"view {v.name}: non-finite metrics {m}")
             rows.append(dict(split=split, name=v.name, render_seconds=dt, **m))
@@ -128,8 +128,10 @@ def test_curve_metrics(dataset, config):
 
     def measure(params, active, pair_capacity: int) -> dict:
         rcfg = dataclasses.replace(lean, pair_capacity=pair_capacity)
-        rows = [image_metrics(render(render_params(params, active, v.camera.world_to_cam), v.camera, rcfg).rgb, v.image)
-                for v in views]
+        rows = []
+        for v in views:
+            out = render(render_params(params, active, v.camera.world_to_cam), v.camera, rcfg)
+            rows.append(image_metrics(out.rgb, v.image) | background_cover(out.alpha, v.alpha))
         return summarize(rows)
 
     return measure
