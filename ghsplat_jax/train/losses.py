@@ -127,8 +127,8 @@ def depth_to_normal(depth: jax.Array, K: jax.Array, world_to_cam: jax.Array) -> 
 
 def normal_consistency(rendered_normal: jax.Array, depth_normal: jax.Array, alpha: jax.Array,
                        coverage: jax.Array | None = None) -> jax.Array:
-    """2DGS normal loss: mean over pixels of 1 - <rendered, depth normal x alpha>; alpha is
-    not differentiated (the prior must not push coverage).
+    """2DGS normal loss: mean over pixels of 1 - <rendered, depth normal x alpha>, the alpha of
+    the target held constant.
 
     `coverage` (H,W), the image's own alpha where it has one, weighs each pixel's term. The
     rendered normal's length is the rendered alpha, so unweighted the term rewards any opacity
