@@ -226,10 +226,10 @@ def test_ctrl_c_saves_a_checkpoint(tmp_path, monkeypatch):
 
     real_step = trainer._Session.step
 
-    def step(self, i):
+    def step(self, i, **kwargs):
         if i == 5:
             raise KeyboardInterrupt
-        return real_step(self, i)
+        return real_step(self, i, **kwargs)
 
     monkeypatch.setattr(trainer._Session, "step", step)
     with pytest.raises(KeyboardInterrupt):
@@ -247,10 +247,10 @@ def test_sigterm_saves_a_checkpoint_like_ctrl_c(tmp_path, monkeypatch):
 
     real_step = trainer._Session.step
 
-    def step(self, i):
+    def step(self, i, **kwargs):
         if i == 4:
             os.kill(os.getpid(), signal.SIGTERM)
-        return real_step(self, i)
+        return real_step(self, i, **kwargs)
 
     monkeypatch.setattr(trainer._Session, "step", step)
     previous = signal.getsignal(signal.SIGTERM)
@@ -379,7 +379,8 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
     """With test_curve_every, training writes the test views' metrics every so many steps to
     test_curve.jsonl, continued across a resume without repeated or missing points; its last
     point (the padded pool rendered with colour only) equals the final evaluation's test PSNR,
-    and its time is left out of the training seconds."""
+    its time is left out of the training seconds, and a point on an opacity-reset step shows the
+    model before the reset."""
     import time
 
     from ghsplat_jax.eval import evaluate
@@ -389,12 +390,20 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
     slow = 2.0  # each evaluation made this much slower, so leaving it out shows in the step times
     real = evaluate.test_curve_metrics
 
+    opacity = []  # the mean opacity of each point's model
+
     def slowed(dataset, config):
         measure = real(dataset, config)
-        return lambda *args: (time.sleep(slow), measure(*args))[1]
+
+        def timed(params, active, pair_capacity):
+            opacity.append(float(np.mean(jax.nn.sigmoid(np.asarray(params.opacity_logits)[np.asarray(active)]))))
+            time.sleep(slow)
+            return measure(params, active, pair_capacity)
+        return timed
 
     monkeypatch.setattr(evaluate, "test_curve_metrics", slowed)
-    config = CONFIG.replace(test_curve_every=10, save_test_renders=False)
+    config = CONFIG.replace(test_curve_every=10, save_test_renders=False, opacity_reset_every=20,
+                            reset_recovery_steps=1)  # opacities reset to 0.01 after step 20
     out = tmp_path / "run"
     train_and_evaluate(config, out, dataset=dataset(), until=15)   # checkpoints at 10 and 15
     metrics = train_and_evaluate(config, out, dataset=dataset(), resume=True)
@@ -405,7 +414,9 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
     assert curve[-1]["l1"] == pytest.approx(metrics["test"]["l1"], rel=1e-4)
     stats = {r["step"]: r for r in map(json.loads, (out / STATS_NAME).read_text().splitlines())}
     assert curve[0]["eval_seconds"] >= slow
-    assert stats[11]["elapsed_s"] - stats[10]["elapsed_s"] < slow  # (no compile falls on step 11)
+    assert opacity[1] > 0.05  # the step-20 point came before the reset
+    for step in (10, 11):  # the step with the evaluation and the next (no compile falls on them)
+        assert stats[step]["elapsed_s"] - stats[step - 1]["elapsed_s"] < slow
     assert curve[0]["elapsed_s"] == pytest.approx(stats[10]["elapsed_s"], abs=0.1)
     assert metrics["train_seconds"] == pytest.approx(stats[30]["elapsed_s"], abs=0.5)
     with pytest.raises(Exception, match="test_curve_every"):

@@ -145,7 +145,8 @@ class TrainConfig:
     save_test_renders: bool = True      # write rgb/depth/normal images of the test views
     # Evaluate the test views every this many steps while training (0: off), into test_curve.jsonl:
     # the test PSNR against training time. Only `ghsplat train` and experiment runs, which know the
-    # test views, do it; its time is left out of the run's training seconds.
+    # test views, do it; its time is left out of the run's training seconds. A point shows the model
+    # before that step's densification round, as 3DGS evaluates (not just after an opacity reset).
     test_curve_every: int = 0
 
     def __post_init__(self):

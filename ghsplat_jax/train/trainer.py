@@ -237,8 +237,10 @@ class _Session:
         return self._hook("at_end")
 
     # -- one iteration ------------------------------------------------------------------
-    def step(self, step: int) -> dict:
-        """Run training step `step` (0-based), handling pair overflow and non-finite results."""
+    def step(self, step: int, before_round=None) -> dict:
+        """Run training step `step` (0-based), handling pair overflow and non-finite results.
+        `before_round()` is called after the update and before the strategy's round of this step
+        (which may reset every opacity), as 3DGS evaluates its test views."""
         c = self.config
         v = view_order(c.seed, step, self.images.shape[0])
         while True:
@@ -266,10 +268,14 @@ class _Session:
                     f"(last at step {step}); try lower learning rates or loss weights (lambda_dist, lambda_normal)")
             self.state = dataclasses.replace(self.state, step=self.state.step + 1)  # skip this view
             m["rolled_back"] = True
+            if before_round is not None:
+                before_round()
             return m
         self.consecutive = 0
         self.state = new
         self._refit_pairs(int(m["num_pairs"]))
+        if before_round is not None:
+            before_round()
         m.update(self._hook("after_step", step + 1))
         return m
 
@@ -384,10 +390,18 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     last_t, last_step = time.perf_counter(), start
     step = start
     stop = config.steps if until is None else min(until, config.steps)
+
+    def curve_point():  # inside session.step(step): the model before the step's strategy round
+        nonlocal paused, last_t
+        spent = _write_curve_point(curve, test_eval, session, step + 1, seconds, num)
+        paused += spent  # the test curve's time is not training time,
+        last_t += spent  # nor does the steps-per-second rate count it
+
     with _terminate_as_interrupt():
         try:
             while step < stop:
-                m = session.step(step)
+                due = curve is not None and (step + 1) % config.test_curve_every == 0
+                m = session.step(step, before_round=curve_point if due else None)
                 step += 1
                 if session.changed:
                     num = int(jnp.sum(session.state.active))
@@ -402,10 +416,6 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
                     stats.flush()
                     bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
                     last_t, last_step = now, step
-                if curve is not None and step % config.test_curve_every == 0:
-                    spent = _write_curve_point(curve, test_eval, session, step, seconds, num)
-                    paused += spent
-                    last_t += spent  # nor does the steps-per-second rate count it
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
                     for fh in logs:
                         _sync(fh)
