@@ -159,13 +159,13 @@ def test_depth_normal_agrees_with_rendered_normal_of_a_tilted_surfel():
     assert good < 0.1 < 1.5 < flipped
 
 
-def _facing_surfel(opacity_logit):
+def _facing_surfel():
     import ghsplat_jax as gs
     from ghsplat_jax.core.quaternions import from_rotation_matrix
 
     rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])  # normal towards -y, at the camera
     return gs.make_surfels([[0, 0, 0]], quats=[from_rotation_matrix(rot)], log_scales=[[np.log(1.0)] * 2],
-                           opacity_logits=[opacity_logit], sh_dc=[[1, 1, 1]])
+                           opacity_logits=[0.0], sh_dc=[[1, 1, 1]])
 
 
 def test_alpha_masked_normal_loss_gives_uncovered_pixels_no_pull_towards_opacity():
@@ -175,7 +175,7 @@ def test_alpha_masked_normal_loss_gives_uncovered_pixels_no_pull_towards_opacity
     cam = gs.Camera(gs.intrinsics(32, 24, 40), gs.look_at([0, -4, 0], [0, 0, 0]), 32, 24)
 
     def normal_loss(logit, coverage):
-        s = dataclasses.replace(_facing_surfel(0.0), opacity_logits=jnp.reshape(logit, (1,)))
+        s = dataclasses.replace(_facing_surfel(), opacity_logits=jnp.reshape(logit, (1,)))
         out = gs.render(s, cam, gs.RasterConfig(pair_capacity=64))
         dn = losses.depth_to_normal(out.depth, cam.K, cam.world_to_cam)
         return losses.normal_consistency(out.normal, dn, out.alpha, coverage)
@@ -210,7 +210,7 @@ def test_training_images_carry_their_alpha_to_the_step_only_for_the_normal_loss(
     cfg = gs.RasterConfig(pair_capacity=64)
 
     def loss(image):
-        s = _facing_surfel(0.0)
+        s = _facing_surfel()
         value, aux = _loss(s, jnp.zeros((1, 2)), jnp.ones(1, bool), jnp.asarray(image), cam, 0, w, cfg, gs.render)
         return float(value), float(aux["l1"]), float(aux["normal"])
 

@@ -79,6 +79,7 @@ def stack_views(views, with_alpha: bool = False):
     if len(sizes) != 1:
         raise ValueError(f"training views must share one image size, got {sorted(sizes)}")
     (w, h), = sizes
+    with_alpha = with_alpha and any(v.alpha is not None for v in views)
 
     def pixels(v):
         rgb = np.asarray(v.image, np.float32)
@@ -87,7 +88,6 @@ def stack_views(views, with_alpha: bool = False):
         alpha = np.ones((h, w), np.float32) if v.alpha is None else np.asarray(v.alpha, np.float32)
         return np.concatenate([rgb, alpha[:, :, None]], axis=2)
 
-    with_alpha = with_alpha and any(v.alpha is not None for v in views)
     images = jnp.asarray(np.stack([pixels(v) for v in views]))
     Ks = jnp.asarray(np.stack([np.asarray(v.camera.K, np.float32) for v in views]))
     w2cs = jnp.asarray(np.stack([np.asarray(v.camera.world_to_cam, np.float32) for v in views]))
