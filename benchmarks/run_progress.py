@@ -75,6 +75,8 @@ def chart(summary: dict, title: str, path: Path) -> None:
     ax2.set_xlabel("step")
     ax2.set_ylabel("surfels")
     ax3.plot(c["step"], c["normal_loss_smoothed"])
+    if summary.get("lambda_normal") == 0:
+        ax3.set_title("lambda_normal = 0: the normal term is not computed", fontsize=8)
     ax3.set_xlabel("step")
     ax3.set_ylabel("normal loss, unweighted (100-step mean)")
     fig.suptitle(title, fontsize=9)
@@ -104,7 +106,8 @@ def main(argv=None) -> int:
     config = tomllib.loads((args.run / "config.toml").read_text())
     summary = summarize(records, int(config.get("steps", 30000)))
     summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"),
-                   raster=config.get("raster"), machine=args.machine)
+                   raster=config.get("raster"), lambda_normal=config.get("lambda_normal"),
+                   machine=args.machine)
     curve = read_jsonl(args.run / TEST_CURVE_NAME)
     if curve:
         keys = ("step", "elapsed_s", "psnr", "l1", "num_surfels", "background_alpha")

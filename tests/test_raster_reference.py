@@ -121,11 +121,21 @@ def test_skipped_outputs_change_nothing_else(distortion):
     (_, lean), g_lean = grad(s, False)
     assert np.abs(np.asarray(full.depth)).max() > 0
     for key in ("rgb", "alpha", "distortion"):
-        np.testing.assert_array_equal(np.asarray(getattr(lean, key)), np.asarray(getattr(full, key)), err_msg=key)
+        assert_same_math(getattr(lean, key), getattr(full, key), key)
     assert not np.any(np.asarray(lean.depth)) and not np.any(np.asarray(lean.normal))
     for field in FIELDS:
-        np.testing.assert_array_equal(np.asarray(getattr(g_lean, field)), np.asarray(getattr(g_full, field)),
-                                      err_msg=field)
+        assert_same_math(getattr(g_lean, field), getattr(g_full, field), field)
+
+
+def assert_same_math(a, b, what):
+    """Two compiled programs doing the same arithmetic: bit for bit on a CPU, where XLA fuses both
+    alike; within float32 rounding elsewhere (on an H100 the two programs' images differed by up to
+    6e-8, one ulp, as their fusions and the GPU's scatter-add order differ)."""
+    a, b = np.asarray(a), np.asarray(b)
+    if jax.default_backend() == "cpu":
+        np.testing.assert_array_equal(a, b, err_msg=what)
+    else:
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=what)
 
 
 @pytest.mark.parametrize("median", [True, False])
