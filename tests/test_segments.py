@@ -43,10 +43,29 @@ def test_prepare_settings_are_checked(tmp_path, extra, end, message):
         prepare_segments(load_experiment(_write(tmp_path, extra, end)))
 
 
-def test_a_folded_segment_is_reported_and_not_trained(tmp_path, capsys):
+def _made_segment(tmp_path, status):
     sfm = tmp_path / "gh" / "row0_x0" / "sfm"
     (sfm / "sparse" / "0").mkdir(parents=True)
-    (sfm / "sfm_report.json").write_text(json.dumps({"status": "folded", "num_images": 12, "num_registered": 12}))
+    (sfm / "sfm_report.json").write_text(json.dumps({"status": status, "num_images": 12, "num_registered": 12}))
+    return sfm
+
+
+@pytest.mark.parametrize("status, code", [("ok", 0), ("folded", 1)])
+def test_prepare_only_makes_data_and_trains_nothing(tmp_path, capsys, status, code):
+    """`--prepare-only` (data made here, trained elsewhere) reports the segments, says which are
+    unfit, and never starts a run."""
+    _made_segment(tmp_path, status)
+    assert ghsplat(["run", str(_write(tmp_path)), "--prepare-only"]) == code
+    out, err = capsys.readouterr()
+    assert f"| row0_x0 | {status} | 12 | 12 |" in (tmp_path / "runs" / "segments.md").read_text()
+    assert ("data ready for 1 runs" in out) == (status == "ok")
+    assert ("row0_x0: SfM status 'folded'" in err) == (status == "folded")
+    assert not (tmp_path / "runs" / "row0_x0").exists()
+    assert ghsplat(["run", str(_write(tmp_path)), "--prepare-only", "--report-only"]) == 2
+
+
+def test_a_folded_segment_is_reported_and_not_trained(tmp_path, capsys):
+    sfm = _made_segment(tmp_path, "folded")
     path = _write(tmp_path)
     unusable = prepare_segments(load_experiment(path))
     assert list(unusable) == ["row0_x0"] and "folded" in unusable["row0_x0"]

@@ -21,6 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, help="override the step count of every run")
     p.add_argument("--list", action="store_true", help="list the planned runs and their state, train nothing")
     p.add_argument("--report-only", action="store_true", help="only collect finished runs into the reports")
+    p.add_argument("--prepare-only", action="store_true",
+                   help="only make the data of a file with [prepare] (photos and SfM), e.g. to train elsewhere")
     p.add_argument("--stop-on-error", action="store_true", help="stop at the first failed run")
     g = p.add_argument_group("executor")
     g.add_argument("--executor", choices=("local", "ray"), default="local",
@@ -65,11 +67,20 @@ def main(args) -> int:
         except ImportError:
             print('ghsplat run: --executor ray needs Ray: pip install -e ".[ray]"', file=sys.stderr)
             return 2
+    if args.report_only and args.prepare_only:
+        print("ghsplat run: --report-only and --prepare-only exclude each other", file=sys.stderr)
+        return 2
     try:
         unusable = {} if args.report_only else prepare_segments(exp)  # scenes whose data could not be made
     except ConfigError as exc:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2
+    if args.prepare_only:
+        for scene, msg in unusable.items():
+            print(f"ghsplat run: {scene}: {msg}", file=sys.stderr)
+        print(f"{len(exp.runs)} runs' data ready except {sorted(unusable)}" if unusable
+              else f"data ready for {len(exp.runs)} runs")
+        return 1 if unusable else 0
     result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
                             executor=args.executor, ray_options=ray_options, exclude=set(unusable))
     result["failed"] = list(unusable.items()) + result["failed"]
