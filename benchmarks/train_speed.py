@@ -8,6 +8,7 @@
     python benchmarks/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
     python benchmarks/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
     python benchmarks/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
+    python benchmarks/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -26,7 +27,9 @@ pixel open at their start, as before pairs were skipped); "current" skips pairs.
 rev` "previous" runs the code of git revision `--rev` (checked out into a temporary worktree)
 and "current" this tree's, in child processes as for malloc: a change's whole effect on the step,
 forward and backward. With `--compare pairs` "current" refits the pair buffer as the trainer
-does after an epoch (the bucket of the most pairs a training view needs). Every row also counts
+does after an epoch (the bucket of the most pairs a training view needs). With `--compare xla`
+"current" adds `--xla-flags` to XLA_FLAGS (compiler options are process-wide: child processes as
+for malloc), "previous" runs without them. Every row also counts
 the page faults per step. The same process also measures the machine's fused exp rate, so
 throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
@@ -193,7 +196,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev"),
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "xla"),
                     default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
@@ -201,9 +204,10 @@ def main(argv=None) -> int:
                          "chunk against the live pairs; pairskip: the chunks holding a live pair against the "
                          "live pairs alone; pairs: the checkpoint's pair buffer against the one the trainer "
                          "refits to after an epoch; rev: the code of git revision --rev against this tree's, "
-                         "in child processes")
+                         "in child processes; xla: XLA_FLAGS as set against with --xla-flags added")
     ap.add_argument("--rev", default="HEAD", help="with --compare rev: the baseline revision (default HEAD)")
-    ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc or rev: child processes per variant")
+    ap.add_argument("--xla-flags", default="", help="with --compare xla: the compiler flags to try")
+    ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc, rev or xla: child processes per variant")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
@@ -222,6 +226,13 @@ def main(argv=None) -> int:
                                  text=True).stdout.strip()
             rows = time_children(args, {"previous": (tree, {}), "current": (ROOT, {})}, args.rounds)
         previous = f"the code of revision {rev} ({args.rev})"
+    elif args.compare == "xla":
+        if not args.xla_flags:
+            ap.error("--compare xla needs --xla-flags")
+        base = os.environ.get("XLA_FLAGS", "")
+        rows = time_children(args, {"previous": (ROOT, {"XLA_FLAGS": base}),
+                                    "current": (ROOT, {"XLA_FLAGS": f"{base} {args.xla_flags}".strip()})}, args.rounds)
+        previous = f"XLA_FLAGS={base!r}; current adds {args.xla_flags!r}"
     elif args.compare == "pool":
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": compact_pool})
