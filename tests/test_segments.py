@@ -58,7 +58,7 @@ def test_prepare_only_makes_data_and_trains_nothing(tmp_path, capsys, status, co
     assert ghsplat(["run", str(_write(tmp_path)), "--prepare-only"]) == code
     out, err = capsys.readouterr()
     assert f"| row0_x0 | {status} | 12 | 12 |" in (tmp_path / "runs" / "segments.md").read_text()
-    assert ("data ready for 1 runs" in out) == (status == "ok")
+    assert "data made; report: " in out
     assert ("row0_x0: SfM status 'folded'" in err) == (status == "folded")
     assert not (tmp_path / "runs" / "row0_x0").exists()
     assert ghsplat(["run", str(_write(tmp_path)), "--prepare-only", "--report-only"]) == 2
@@ -74,3 +74,11 @@ def test_a_folded_segment_is_reported_and_not_trained(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "row0_x0 failed: SfM status 'folded'" in err and str(sfm / "sfm_report.json") in err
     assert not (tmp_path / "runs" / "row0_x0").exists()  # nothing was trained on it
+
+
+def test_prepare_only_without_prepare_makes_nothing(tmp_path, capsys):
+    path = tmp_path / "plain.toml"
+    path.write_text(f'name = "plain"\noutput = "{tmp_path}/runs"\n[[scenes]]\nname = "a"\ndata = "{tmp_path}/a"\n')
+    assert ghsplat(["run", str(path), "--prepare-only"]) == 0
+    assert "no [prepare] table, so no data to make" in capsys.readouterr().out
+    assert not (tmp_path / "runs").exists()

@@ -76,10 +76,12 @@ def main(args) -> int:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2
     if args.prepare_only:
+        if not exp.spec.get("prepare"):
+            print(f"{exp.source}: no [prepare] table, so no data to make")
+            return 0
         for scene, msg in unusable.items():
             print(f"ghsplat run: {scene}: {msg}", file=sys.stderr)
-        print(f"{len(exp.runs)} runs' data ready except {sorted(unusable)}" if unusable
-              else f"data ready for {len(exp.runs)} runs")
+        print(f"data made; report: {exp.results / 'segments.md'}")
         return 1 if unusable else 0
     result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
                             executor=args.executor, ray_options=ray_options, exclude=set(unusable))
