@@ -82,3 +82,8 @@ def test_prepare_only_without_prepare_makes_nothing(tmp_path, capsys):
     assert ghsplat(["run", str(path), "--prepare-only"]) == 0
     assert "no [prepare] table, so no data to make" in capsys.readouterr().out
     assert not (tmp_path / "runs").exists()
+
+
+def test_prepare_only_refuses_a_stability_study(capsys):
+    assert ghsplat(["run", "experiments/stability.toml", "--prepare-only"]) == 2
+    assert "not a stability study" in capsys.readouterr().err

@@ -50,6 +50,10 @@ def main(args) -> int:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2
     if exp.kind == "stability":
+        if args.prepare_only:  # the study makes its rows inside its cases
+            print(f"ghsplat run: {exp.source}: --prepare-only applies to [prepare] segments, not a stability study",
+                  file=sys.stderr)
+            return 2
         return _run_stability(exp, args)
     if args.list:
         for r in exp.runs:
