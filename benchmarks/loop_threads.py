@@ -1,4 +1,4 @@
-"""Does XLA:CPU run independent loops side by side? One program, two host devices.
+"""Does XLA:CPU run independent loops side by side? One program, two host devices, two threads.
 
     python benchmarks/loop_threads.py [--rows 256] [--iterations 2000] [--repeats 7]
 
@@ -6,7 +6,8 @@ The compositor's loop bodies are mostly single-threaded (fusion_profile.py), so 
 could only help if two loops ran at once. Times, interleaved and as medians of wall and CPU
 seconds: one loop of 2n iterations; two independent loops of n in one program; the same two
 loops as a `shard_map` over two host devices (a child process with
---xla_force_host_platform_device_count=2, since the flag must be set before JAX starts).
+--xla_force_host_platform_device_count=2, since the flag must be set before JAX starts); and two
+calls of the loop of n, each from its own Python thread (one device).
 Writes benchmarks/results/loop_threads.json.
 """
 
@@ -18,6 +19,7 @@ import os
 import platform
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -44,9 +46,26 @@ def loop(x, n: int):
     return jax.lax.fori_loop(0, n, body, (x, jnp.zeros_like(x[:, 0])))[1]
 
 
+def in_two_threads(fn):
+    """fn(x) and fn(1.1 x), each called from its own thread: two programs at once."""
+    def both(x):
+        results = [None, None]
+        def call(k, arg):
+            results[k] = fn(arg).block_until_ready()
+        threads = [threading.Thread(target=call, args=(k, arg)) for k, arg in enumerate((x, 1.1 * x))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        return results[0] + results[1]
+    return both
+
+
 def variants(n: int, devices: int) -> dict:
+    half = jax.jit(lambda x: loop(x, n))
     out = {"one loop of 2n": (jax.jit(lambda x: loop(x, 2 * n)), 1),
-           "two loops of n, one program": (jax.jit(lambda x: loop(x, n) + loop(1.1 * x, n)), 1)}
+           "two loops of n, one program": (jax.jit(lambda x: loop(x, n) + loop(1.1 * x, n)), 1),
+           "two loops of n, two threads": (in_two_threads(half), 1)}
     if devices >= 2:
         try:
             from jax import shard_map
