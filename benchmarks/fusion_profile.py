@@ -196,7 +196,9 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
     from train_speed import _session
 
     host_memory.reuse_freed_memory()  # as `ghsplat train` runs
-    config = load_config(run_dir / "config.toml")
+    # The step as one program, whose compiled text maps every op to its loop (the parted step's
+    # programs would each need their own map).
+    config = load_config(run_dir / "config.toml").replace(step_threads=1)
     session = _session(config, load_training_data(config), run_dir / "checkpoint.npz")
     state0, step0 = session.state, int(session.state.step)
 

@@ -275,7 +275,7 @@ def test_compiled_step_follows_every_setting_of_its_config():
     """Steps are built from their config, not looked up by a hand-picked key: variants that differ
     only in a learning rate or a loss weight get their own compiled step, equal configs equal results."""
     from ghsplat_jax.train.state import new_state, pad_params
-    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
     from raster_scenes import random_scene
 
@@ -295,13 +295,44 @@ def test_compiled_step_follows_every_setting_of_its_config():
     assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
 
 
+@pytest.mark.parametrize("extra", [dict(), dict(strategy="mcmc", max_surfels=100)], ids=["default", "mcmc"])
+def test_parted_step_matches_the_one_program_step(extra):
+    """The step whose compositor runs in two threads (`parted_step`) computes what the single
+    program does: the same loss and metrics, and updates equal to float32 rounding (the parts'
+    gradients add up in another order), with every output on (median, distortion, normals) and
+    with the MCMC regularisers, whose gradient does not pass through the renderer."""
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.step_builder import make_train_step
+    from ghsplat_jax.train.trainer import step_raster_config
+    from raster_scenes import random_scene
+
+    view = dataset().train[0]
+    image, cam = jnp.asarray(view.image), view.camera
+    params, active = pad_params(random_scene(64, seed=2, degree=1, opacity=(0.3, 0.9)), 128)
+    cfg = CONFIG.replace(depth_ratio=0.5, **extra).replace(batch_chunks=2)
+    rcfg = step_raster_config(cfg, 16384)
+    assert rcfg.median and rcfg.distortion and rcfg.depth_normal
+    out = {}
+    for threads in (1, 2):
+        optimizers, step = make_train_step(cfg.replace(step_threads=threads))
+        out[threads] = step(new_state(params, active, optimizers), image, cam.K, cam.world_to_cam,
+                            jnp.float32(1e-4), rcfg, cam.width, cam.height)
+    (a, ma), (b, mb) = out[1], out[2]
+    for key in ("loss", "l1", "ssim", "distortion", "normal", "num_pairs", "finite"):
+        assert float(mb[key]) == pytest.approx(float(ma[key]), rel=1e-6, abs=1e-9), key
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-5, atol=1e-6)
+    moved = np.abs(np.asarray(a.params.means) - np.asarray(params.means))[np.asarray(active)]
+    assert moved.max() > 0  # the comparison is of a real update
+
+
 def test_compacted_pool_steps_like_the_full_one_and_densification_end_compacts():
     """state.compact moves each live surfel with its moments and statistics: a step on the
     compacted pool gives the live surfels the same loss and updates as on the full pool. The
     default strategy compacts at its first round after densification ends."""
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import compact, new_state, pad_params
-    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.strategy import make_strategy
     from ghsplat_jax.train.trainer import step_raster_config
     from raster_scenes import random_scene
@@ -358,14 +389,14 @@ def test_every_matrix_product_of_the_step_asks_for_float32():
     H100 (alpha off by 3.6e-3): every product of the step, the compositor's hand-written backward
     and the SSIM blur included, must name full float32 precision (on a CPU it changes nothing)."""
     from ghsplat_jax.train.state import new_state, pad_params
-    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
     from raster_scenes import random_scene
 
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
     params, active = pad_params(random_scene(64, seed=2, degree=1), 128)
-    optimizers, step = make_train_step(CONFIG)
+    optimizers, step = make_train_step(CONFIG.replace(step_threads=1))  # one program, as on a GPU
     state = new_state(params, active, optimizers)
     jaxpr = jax.make_jaxpr(lambda s: step(s, image, cam.K, cam.world_to_cam, jnp.float32(1e-4),
                                           step_raster_config(CONFIG, 16384), cam.width, cam.height))(state)

@@ -443,7 +443,7 @@ def test_pool_growth_follows_the_backend(monkeypatch):
     """The default strategy grows a full pool to growth_bucket of what its candidates need."""
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import new_state, pad_params
-    from ghsplat_jax.train.step import make_train_step
+    from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.strategy import make_strategy
     from raster_scenes import random_scene
 

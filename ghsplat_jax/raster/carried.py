@@ -28,6 +28,11 @@ u M20 + v M21 + M22 is det(M) / p2. Same contract as `project.evaluate_pixels`, 
 
 With `offsets` (T, S, 2) (`samples.PixelSamples`), a tile's S sample points stand in for its
 pixels: the same math, with each batch gathering its tiles' points instead of a constant grid.
+
+Both walks also run in parts: `split_chunks` cuts the used chunks into ranges of whole tiles,
+`forward_part` and `backward_part` walk one range each (other chunks count as empty), and the
+parts add up (`join_forward`; the table gradients by plain sums). The training step on a CPU
+walks two parts from two threads (`train/parted_step.py`), since XLA:CPU runs one loop at a time.
 """
 
 from __future__ import annotations
@@ -146,12 +151,32 @@ def _slice(x, i, batch):
     return jax.lax.dynamic_slice_in_dim(x, i * batch, batch)
 
 
-def _batch_inputs(table, surfel, valid, tile, first, i, st: Static):
-    """Batch i: fields (F, K, B), valid (K, B), tile (B,), first (B,), corner offsets (K, B)."""
+def _batch_inputs(table, surfel, valid, tile, first, i, st: Static, lo, hi):
+    """Batch i: fields (F, K, B), valid (K, B), tile (B,), first (B,), corner offsets (K, B);
+    chunks outside [lo, hi) count as empty (another part's, `split_chunks`)."""
     rows = table[_slice(surfel, i, st.batch_chunks)]                    # (B, K, F)
     f = jnp.moveaxis(rows, 2, 0).swapaxes(1, 2)
     t = _slice(tile, i, st.batch_chunks)
-    return f, _slice(valid, i, st.batch_chunks).T, t, _slice(first, i, st.batch_chunks), _corner_offsets(f, t, st)
+    chunk = i * st.batch_chunks + jnp.arange(st.batch_chunks)
+    v = _slice(valid, i, st.batch_chunks).T & ((chunk >= lo) & (chunk < hi))[None]
+    return f, v, t, _slice(first, i, st.batch_chunks), _corner_offsets(f, t, st)
+
+
+def split_chunks(first, used, parts: int):
+    """(parts + 1,) chunk indices: part j walks chunks [b[j], b[j + 1]) of the `used` ones,
+    about used / parts of them, each part starting at a tile's first chunk, so no transmittance
+    crosses parts and the parts' walks are independent."""
+    index = jnp.arange(first.shape[0], dtype=jnp.int32)
+    used = jnp.asarray(used, jnp.int32)
+    targets = (jnp.arange(1, parts, dtype=jnp.int32) * used) // parts
+    starts = jnp.min(jnp.where(first[None] & (index[None] >= targets[:, None]) & (index[None] < used),
+                               index[None], used), axis=1)
+    return jnp.concatenate([jnp.zeros(1, jnp.int32), starts, used[None]])
+
+
+def _batches(lo, hi, batch: int):
+    """The loop range over batches that hold chunks [lo, hi)."""
+    return lo // batch, (hi + batch - 1) // batch
 
 
 def _local_points(offsets, t, st: Static):
@@ -168,9 +193,9 @@ def _offsets(corner, local):
     return corner[0][..., None] + local[0], corner[1][..., None] + local[1]
 
 
-def _num_batches(valid, st: Static):
-    used = jnp.sum(valid[:, 0].astype(jnp.int32))
-    return (used + st.batch_chunks - 1) // st.batch_chunks
+def used_chunks(valid):
+    """How many chunks of the layout hold pairs (they come first)."""
+    return jnp.sum(valid[:, 0].astype(jnp.int32))
 
 
 def _pixel_sums(weight, z, f, st: Static):
@@ -198,13 +223,16 @@ def _all_features(sums, st: Static):
     return jnp.stack([columns.get(c, zero) for c in range(NUM_FEATURES)], axis=-1)
 
 
-def _forward(st: Static, table, surfel, valid, tile, first, offsets):
+def forward_part(st: Static, table, surfel, valid, tile, first, offsets, lo, hi):
+    """The forward walk of chunks [lo, hi) (`split_chunks`): per-tile sums (T, F', P), the median
+    pairs' depths (chunks, P), their layout indices (T, P) and the backward's marks (W, K), each
+    zero (-1, False) outside the part; `join_forward` adds the parts up."""
     num_chunks, pixels = tile.shape[0], st.pixels
     batch = st.batch_chunks
 
     def body(i, state):
         log_t, totals, z_last, selected, live = state
-        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
+        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st, lo, hi)
         alpha, z, _ = _evaluate(f, *_offsets(corner, _local_points(offsets, t, st)), v, st)
         _, included, weight, log_before, log_t, batch_live = _blend(alpha, log_t, fst, st.backward_skip)
         live = jax.lax.dynamic_update_slice_in_dim(live, batch_live.T, i * batch, 0)
@@ -221,11 +249,24 @@ def _forward(st: Static, table, surfel, valid, tile, first, offsets):
     init = (jnp.zeros(pixels), jnp.zeros((st.num_tiles, len(feature_columns(st)), pixels)),
             jnp.zeros((median_rows, pixels)), jnp.full((st.num_tiles, pixels), -1, jnp.int32),
             jnp.zeros(tile.shape + (surfel.shape[1],), bool))
-    _, totals, z_last, selected, live = jax.lax.fori_loop(0, _num_batches(valid, st), body, init)
+    return jax.lax.fori_loop(*_batches(lo, hi, batch), body, init)[1:]
+
+
+def join_forward(st: Static, parts, chunk_size: int):
+    """Outputs (totals (T, P, F), median (T, P)) and residuals from `forward_part`'s parts."""
+    totals, z_last, selected, live = parts[0]
+    for more in parts[1:]:
+        totals, z_last = totals + more[0], z_last + more[1]
+        selected, live = jnp.maximum(selected, more[2]), live | more[3]
     totals = _all_features(jnp.swapaxes(totals, 1, 2), st)              # (T, P, F)
-    chunk = jnp.maximum(selected, 0) // surfel.shape[1]
-    median = jnp.where(selected >= 0, z_last[chunk, jnp.arange(pixels)[None]], 0.0)
+    chunk = jnp.maximum(selected, 0) // chunk_size
+    median = jnp.where(selected >= 0, z_last[chunk, jnp.arange(st.pixels)[None]], 0.0)
     return (totals, median), (totals, selected, live)
+
+
+def _forward(st: Static, table, surfel, valid, tile, first, offsets):
+    part = forward_part(st, table, surfel, valid, tile, first, offsets, 0, used_chunks(valid))
+    return join_forward(st, [part], surfel.shape[1])
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -302,12 +343,12 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
     return jnp.stack([*d_pc, *d_a, *d_b, d_det, d_cx, d_cy, d_opacity, d_depth])
 
 
-def _bwd(st: Static, residuals, cotangents):
+def backward_inputs(st: Static, residuals, cotangents):
+    """What every backward part reads, from the forward's residuals and the output cotangents;
+    and how many chunks of marked pairs there are to walk (`split_chunks`)."""
     table, surfel, valid, tile, offsets, totals, selected, live = residuals
     surfel, valid, pair_id, tile, first, num_live = live_pairs(live, surfel, valid, tile, st.num_tiles)
     g_totals, g_median = cotangents
-    pixels = st.pixels
-    batch = st.batch_chunks
     pad = lambda a, fill: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], fill, a.dtype)])
     g_totals, g_median, selected = pad(g_totals, 0.0), pad(g_median, 0.0), pad(selected, -1)
     g_dot_total = jnp.sum(g_totals * pad(totals, 0.0), axis=-1)          # (T + 1, P)
@@ -315,10 +356,18 @@ def _bwd(st: Static, residuals, cotangents):
     # (B, P) planes along P. Gathered as (B, P, F), XLA:CPU reads them with a stride; gathered
     # from (F, T + 1, P), it transposes them inside every fusion that reads them.
     g_rows = jnp.swapaxes(g_totals, 1, 2)                               # (T + 1, F, P)
+    return (table, surfel, valid, tile, first, offsets, pair_id, selected, g_median, g_dot_total, g_rows), num_live
+
+
+def backward_part(st: Static, inputs, lo, hi):
+    """The gradient (N, NUM_FIELDS) of the per-surfel table from the marked chunks [lo, hi);
+    the parts' gradients add up."""
+    table, surfel, valid, tile, first, offsets, pair_id, selected, g_median, g_dot_total, g_rows = inputs
+    batch = st.batch_chunks
 
     def body(i, state):
         log_t, prefix, d_table = state
-        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st)
+        f, v, t, fst, corner = _batch_inputs(table, surfel, valid, tile, first, i, st, lo, hi)
         local = _local_points(offsets, t, st)
         alpha, z, aux = _evaluate(f, *_offsets(corner, local), v, st)
         t_before, included, weight, log_before, log_t, _ = _blend(alpha, log_t, fst)
@@ -345,8 +394,8 @@ def _bwd(st: Static, residuals, cotangents):
         one_minus = 1.0 - alpha
         d_alpha = jnp.where(included, (t_before * h * one_minus - after) / one_minus, 0.0)
         d_z = weight * sum(g_z) if g_z else jnp.zeros_like(weight)
-        if st.median:  # the pixel's median pair, found by its layout index
-            here = _slice(pair_id, i, batch).T[..., None] == selected[t][None]
+        if st.median:  # the pixel's median pair, found by its layout index (never another part's)
+            here = (_slice(pair_id, i, batch).T[..., None] == selected[t][None]) & v[..., None]
             d_z = d_z + jnp.where(here, g_median[t][None], 0.0)
         d_geometry = _pullback(f, corner, local, aux, d_alpha, d_z)     # (14, K, B)
         g_const = jnp.concatenate([g[:, c:c + 1] for c in const_planes], axis=1)  # (B, 6 or 3, P)
@@ -357,9 +406,13 @@ def _bwd(st: Static, residuals, cotangents):
         d_table = d_table.at[_slice(surfel, i, batch)].add(d_rows)         # padding pairs add zeros
         return log_t, prefix, d_table
 
-    init = (jnp.zeros(pixels), jnp.zeros(pixels), jnp.zeros_like(table))
-    _, _, d_table = jax.lax.fori_loop(0, (num_live + batch - 1) // batch, body, init)
-    return d_table, None, None, None, None, None
+    init = (jnp.zeros(st.pixels), jnp.zeros(st.pixels), jnp.zeros_like(table))
+    return jax.lax.fori_loop(*_batches(lo, hi, batch), body, init)[2]
+
+
+def _bwd(st: Static, residuals, cotangents):
+    inputs, num_live = backward_inputs(st, residuals, cotangents)
+    return backward_part(st, inputs, 0, num_live), None, None, None, None, None
 
 
 composite_carried.defvjp(_fwd, _bwd)

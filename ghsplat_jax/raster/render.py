@@ -61,7 +61,7 @@ def _safe_divide(num, den):
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
-def _outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
+def render_outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
              capacity: int, samples: PixelSamples | None) -> RenderOutput:
     if samples is None:
         to_pixels = lambda tiles: _image(tiles, grid, cam.width, cam.height)
@@ -100,6 +100,38 @@ def _empty(cam: Camera, cfg: RasterConfig, samples: PixelSamples | None = None) 
         radii=jnp.zeros((0,)), stats=RasterStats(zero, zero, zero, zero, zero, zero, zero, zero))
 
 
+def project_surfels(s: Surfels, cam: Camera, cfg: RasterConfig, means2d_probe: jax.Array | None = None) -> Projected:
+    """The surfels projected as a render projects them (float32, the config's near plane, SH bands
+    and low-pass filter)."""
+    s = _as_surfels(s)
+    return project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
+
+
+def compositor_static(cfg: RasterConfig, width: int, height: int, samples: PixelSamples | None = None):
+    """The tile grid and the compositor's static settings of a render."""
+    grid = binning.TileGrid.for_image(width, height, cfg.tile_size)
+    return grid, composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
+                                  cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion,
+                                  cfg.depth_normal, 0 if samples is None else samples.slots, cfg.backward_skip)
+
+
+def bin_projected(p: Projected, cam: Camera, cfg: RasterConfig, capacity: int,
+                  samples: PixelSamples | None = None):
+    """The tile grid, the compositor's static settings and the binned pairs of a projection."""
+    grid, st = compositor_static(cfg, cam.width, cam.height, samples)
+    layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
+                               _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",
+                               None if samples is None else samples.boxes, cfg.sort)
+    return grid, st, layout
+
+
+def chunk_surfels(layout: binning.Layout, cfg: RasterConfig, capacity: int):
+    """Each chunk's surfels and which of its slots hold a pair, (W, K) both."""
+    pair = layout.chunk_start[:, None] + jnp.arange(cfg.chunk_size)[None]
+    valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
+    return layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)], valid
+
+
 def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
               means2d_probe: jax.Array | None = None, tile_slots: int | None = None,
               samples: PixelSamples | None = None) -> RenderOutput:
@@ -118,14 +150,8 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
         return _empty(cam, cfg, samples)
     if samples is not None:
         samples = jax.tree_util.tree_map(jnp.asarray, samples)
-    grid = binning.TileGrid.for_image(cam.width, cam.height, cfg.tile_size)
-    p = project(s, cam, cfg.near, _sh_degree(s, cfg), cfg.lowpass_filter, means2d_probe)
-    st = composite.Static(grid.tiles_x, grid.tile_size, grid.num_tiles, cfg.near, cfg.far,
-                          cfg.lowpass_filter, cfg.batch_chunks, cfg.median, cfg.distortion, cfg.depth_normal,
-                          0 if samples is None else samples.slots, cfg.backward_skip)
-    layout = binning.bin_pairs(p, cam.width, cam.height, grid, capacity, cfg.chunk_size,
-                               _num_chunks(capacity, grid, cfg), cfg.bounds == "tight",
-                               None if samples is None else samples.boxes, cfg.sort)
+    p = project_surfels(s, cam, cfg, means2d_probe)
+    grid, st, layout = bin_projected(p, cam, cfg, capacity, samples)
     if cfg.backend == "dense":
         slots = tile_slots or min(s.means.shape[0], capacity)
         starts = jnp.cumsum(layout.tile_count) - layout.tile_count
@@ -133,16 +159,14 @@ def rasterize(s: Surfels, cam: Camera, cfg: RasterConfig, capacity: int,
         totals, median = naive.composite_dense(st, _chunk_params(p, layout.pair_surfel), pair_valid,
                                                slots, starts, layout.tile_count)
     else:
-        pair = layout.chunk_start[:, None] + jnp.arange(cfg.chunk_size)[None]
-        valid = jnp.arange(cfg.chunk_size)[None] < layout.chunk_count[:, None]
-        surfel = layout.pair_surfel[jnp.clip(pair, 0, capacity - 1)]
+        surfel, valid = chunk_surfels(layout, cfg, capacity)
         if cfg.compositor == "carried":
             totals, median = carried.composite_carried(st, carried.pair_table(p), surfel, valid, layout.chunk_tile,
                                                        layout.chunk_first, None if samples is None else samples.offsets)
         else:
             totals, median = composite.composite(st, _chunk_params(p, surfel), valid, layout.chunk_tile,
                                                  layout.chunk_first, cfg.backward)
-    out = _outputs(totals, median, cfg, grid, cam, p, layout, capacity, samples)
+    out = render_outputs(totals, median, cfg, grid, cam, p, layout, capacity, samples)
     if cfg.on_overflow == "raise" and isinstance(out.stats.num_pairs, jax.core.Tracer):
         jax.debug.callback(_raise_on_overflow, out.stats.num_pairs, capacity)
     return out

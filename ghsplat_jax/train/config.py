@@ -138,6 +138,9 @@ class TrainConfig:
 
     # --- bookkeeping ----------------------------------------------------------------------
     checkpoint_every: int = 1000        # write a checkpoint every this many steps (and on Ctrl-C)
+    step_threads: int = 0               # threads that walk the compositor's loops in a training step (a part of
+    #                                     the tiles each, `train/parted_step.py`); 0: 2 for the carried compositor
+    #                                     on a CPU with 2 or more cores, else 1 (one program)
     max_consecutive_rollbacks: int = 10 # stop with an error after this many non-finite steps in a row
     max_total_rollbacks: int = 100      # ... or this many over the run
     progress: bool = True               # tqdm progress bar
@@ -168,6 +171,8 @@ class TrainConfig:
             raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
             raise ConfigError(f"steps must be >= 0, got {self.steps}")
+        if self.step_threads < 0:
+            raise ConfigError(f"step_threads must be >= 0 (0: automatic), got {self.step_threads}")
         if self.test_curve_every < 0:
             raise ConfigError(f"test_curve_every must be >= 0 (0: off), got {self.test_curve_every}")
         if self.densify_every < 1:

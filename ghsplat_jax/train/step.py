@@ -47,13 +47,17 @@ def sh_band_mask(step: jax.Array, w: LossWeights, num_rest: int) -> jax.Array:
     return (band <= degree).astype(jnp.float32)
 
 
-def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn):
-    """`image` (H,W,3), or (H,W,4) with the image's alpha, which masks the normal loss."""
-    image, coverage = (image, None) if image.shape[-1] == 3 else (image[..., :3], image[..., 3])
+def step_surfels(params, active, camera: Camera, step, w: LossWeights):
+    """The surfels a step renders: the live ones, with the SH bands not yet switched on zeroed."""
     p = render_params(params, active, camera.world_to_cam)
     mask = sh_band_mask(step, w, p.sh_rest.shape[1])
-    p = dataclasses.replace(p, sh_rest=p.sh_rest * mask[None, :, None])
-    out = render_fn(p, camera, raster_cfg, means2d_probe=probe)
+    return dataclasses.replace(p, sh_rest=p.sh_rest * mask[None, :, None])
+
+
+def image_loss(out, image, camera: Camera, step, w: LossWeights, raster_cfg):
+    """The loss of a render against `image` (H,W,3), or (H,W,4) with the image's alpha, which
+    masks the normal loss; and the step's metrics."""
+    image, coverage = (image, None) if image.shape[-1] == 3 else (image[..., :3], image[..., 3])
     l1 = losses.l1(out.rgb, image)
     ssim = losses.ssim(out.rgb, image)
     loss = (1.0 - w.lambda_dssim) * l1 + w.lambda_dssim * (1.0 - ssim)
@@ -69,14 +73,25 @@ def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, ra
         dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)
         normal_loss = losses.normal_consistency(out.normal, dn, out.alpha, coverage)
         loss = loss + jnp.where(step >= w.normal_from, w.lambda_normal, 0.0) * normal_loss
-    if w.opacity_reg > 0 or w.scale_reg > 0:
-        live = active.astype(jnp.float32)
-        n = jnp.maximum(jnp.sum(live), 1.0)
-        loss = loss + w.opacity_reg * jnp.sum(jax.nn.sigmoid(params.opacity_logits) * live) / n
-        loss = loss + w.scale_reg * jnp.sum(jnp.exp(params.log_scales) * live[:, None]) / n
     aux = dict(l1=l1, ssim=ssim, psnr=losses.psnr(out.rgb, image), distortion=dist, normal=normal_loss,
                visible=out.visible, radii=out.radii, num_pairs=out.stats.num_pairs,
                overflow=out.stats.overflow)
+    return loss, aux
+
+
+def regularisers(params, active, w: LossWeights):
+    """The L1 regularisers on opacity and scale (3DGS-MCMC), averaged over the live surfels."""
+    live = active.astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(live), 1.0)
+    return (w.opacity_reg * jnp.sum(jax.nn.sigmoid(params.opacity_logits) * live) / n
+            + w.scale_reg * jnp.sum(jnp.exp(params.log_scales) * live[:, None]) / n)
+
+
+def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn):
+    out = render_fn(step_surfels(params, active, camera, step, w), camera, raster_cfg, means2d_probe=probe)
+    loss, aux = image_loss(out, image, camera, step, w, raster_cfg)
+    if w.opacity_reg > 0 or w.scale_reg > 0:
+        loss = loss + regularisers(params, active, w)
     return loss, aux
 
 
@@ -97,6 +112,11 @@ def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: in
     grad_fn = jax.value_and_grad(_loss, argnums=(0, 1), has_aux=True)
     (loss, aux), (grads, probe_grad) = grad_fn(state.params, probe, state.active, image, camera, state.step,
                                                 weights, raster_cfg, render_fn)
+    return apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+
+
+def apply_gradients(state: TrainState, loss, aux, grads, probe_grad, means_lr, optimizers, width: int, height: int):
+    """Adam on the live rows and the densification statistics; (new state, metrics)."""
     act = state.active
 
     def mask_rows(g):
@@ -115,26 +135,6 @@ def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: in
 
 
 TRACE_COUNTS: dict[str, int] = {"train_step": 0}  # incremented only while tracing: proves no recompiles
-
-
-def make_train_step(config, render_fn=None):
-    """(optimizers, jitted step(state, image, K, w2c, means_lr, raster_cfg, width, height)) built
-    from `config` itself: every setting the step reads is baked into this jit, so no other run
-    can reuse it by mistake. It compiles once per pool capacity, image size and raster_cfg
-    (static). Runs with identical settings still share the XLA binary through JAX's persistent
-    compilation cache, which keys on the program. The state is not donated: a step that
-    overflows its pair buffer or goes non-finite is redone or rolled back from it."""
-    optimizers = optim.make_optimizers(config)
-    weights = LossWeights.from_config(config)
-    if render_fn is None:
-        from ghsplat_jax.raster.render import render as render_fn
-
-    def step(state, image, K, world_to_cam, means_lr, raster_cfg, width, height):
-        TRACE_COUNTS["train_step"] += 1
-        return train_step(state, image, K, world_to_cam, means_lr, width=width, height=height,
-                          optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn)
-
-    return optimizers, jax.jit(step, static_argnames=("raster_cfg", "width", "height"))
 
 
 @functools.partial(jax.jit, static_argnames=("raster_cfg",))

@@ -31,7 +31,7 @@ from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, S
                                        load_run_checkpoint, load_training_data, peak_rss_mb)
 from ghsplat_jax.train.state import (TrainState, compiles_cost_more_than_slots, initial_surfels, needs_random_init,
                                     new_state, pad_params, random_init_box)
-from ghsplat_jax.train.step import make_train_step
+from ghsplat_jax.train.step_builder import make_train_step
 from ghsplat_jax.train.strategy import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
 
 log = logging.getLogger("ghsplat.train")
