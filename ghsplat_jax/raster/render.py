@@ -62,7 +62,7 @@ def _safe_divide(num, den):
 
 
 def render_outputs(totals, median, cfg: RasterConfig, grid, cam: Camera, p: Projected, layout,
-             capacity: int, samples: PixelSamples | None) -> RenderOutput:
+                   capacity: int, samples: PixelSamples | None) -> RenderOutput:
     if samples is None:
         to_pixels = lambda tiles: _image(tiles, grid, cam.width, cam.height)
     else:
