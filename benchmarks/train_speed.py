@@ -10,6 +10,7 @@
     python benchmarks/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
     python benchmarks/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
     python benchmarks/train_speed.py --config C --checkpoint K --compare threads  # one program vs two threads
+    python benchmarks/train_speed.py --config C --checkpoint K --compare partbatch  # threads' batches of 128 vs 32
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -31,7 +32,9 @@ forward and backward. With `--compare pairs` "current" refits the pair buffer as
 does after an epoch (the bucket of the most pairs a training view needs). With `--compare xla`
 "current" adds `--xla-flags` to XLA_FLAGS (compiler options are process-wide: child processes as
 for malloc), "previous" runs without them. With `--compare threads` "previous" runs the step as
-one program (`step_threads = 1`), "current" with its compositor in two threads. Every row also counts
+one program (`step_threads = 1`), "current" with its compositor in two threads. With `--compare
+partbatch` both run in two threads, "previous" with the one-program batch (`raster.part_batch_chunks`
+= `raster.batch_chunks`), "current" with the config's own part batch. Every row also counts
 the page faults per step. The same process also measures the machine's fused exp rate, so
 throughputs can be read against it. Writes
 benchmarks/results/train_speed.json (results are appended by window) and train_speed.png.
@@ -198,7 +201,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "xla", "threads"),
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "xla", "threads",
+                                             "partbatch"),
                     default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
@@ -207,7 +211,8 @@ def main(argv=None) -> int:
                          "live pairs alone; pairs: the checkpoint's pair buffer against the one the trainer "
                          "refits to after an epoch; rev: the code of git revision --rev against this tree's, "
                          "in child processes; xla: XLA_FLAGS as set against with --xla-flags added; threads: "
-                         "the step as one program against its compositor in two threads")
+                         "the step as one program against its compositor in two threads; partbatch: the threads' "
+                         "walks in the one-program batch against raster.part_batch_chunks")
     ap.add_argument("--rev", default="HEAD", help="with --compare rev: the baseline revision (default HEAD)")
     ap.add_argument("--xla-flags", default="", help="with --compare xla: the compiler flags to try")
     ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc, rev or xla: child processes per variant")
@@ -249,6 +254,12 @@ def main(argv=None) -> int:
         variants = {"previous": config.replace(step_threads=1), "current": config.replace(step_threads=2)}
         rows = time_steps(variants, dataset, checkpoint, args.steps)
         previous = "step_threads = 1 (one program); current 2 (train/parted_step.py)"
+    elif args.compare == "partbatch":
+        same = config.raster.batch_chunks
+        variants = {"previous": config.replace(step_threads=2, **{"raster.part_batch_chunks": same}),
+                    "current": config.replace(step_threads=2)}
+        rows = time_steps(variants, dataset, checkpoint, args.steps)
+        previous = f"step_threads = 2 with raster.part_batch_chunks = {same} (the one-program batch)"
     elif args.compare == "pairs":
         variants = {"previous": config, "current": config}
         rows = time_steps(variants, dataset, checkpoint, args.steps, {"current": refit_pairs})

@@ -299,8 +299,9 @@ def test_compiled_step_follows_every_setting_of_its_config():
 def test_parted_step_matches_the_one_program_step(extra):
     """The step whose compositor runs in two threads (`parted_step`) computes what the single
     program does: the same loss and metrics, and updates equal to float32 rounding (the parts'
-    gradients add up in another order), with every output on (median, distortion, normals) and
-    with the MCMC regularisers, whose gradient does not pass through the renderer."""
+    gradients add up in another order, and the parts walk in batches of another size), with every
+    output on (median, distortion, normals) and with the MCMC regularisers, whose gradient does not
+    pass through the renderer."""
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
@@ -309,7 +310,8 @@ def test_parted_step_matches_the_one_program_step(extra):
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
     params, active = pad_params(random_scene(64, seed=2, degree=1, opacity=(0.3, 0.9)), 128)
-    cfg = CONFIG.replace(depth_ratio=0.5, **extra).replace(batch_chunks=2)
+    # Batches of 2 chunks in one program, of 3 in each part: both walks carry across batches.
+    cfg = CONFIG.replace(depth_ratio=0.5, **extra).replace(batch_chunks=2, **{"raster.part_batch_chunks": 3})
     rcfg = step_raster_config(cfg, 16384)
     assert rcfg.median and rcfg.distortion and rcfg.depth_normal
     out = {}

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -343,6 +344,23 @@ def _pullback(f, corner, local, aux, d_alpha, d_z):
     return jnp.stack([*d_pc, *d_a, *d_b, d_det, d_cx, d_cy, d_opacity, d_depth])
 
 
+class BackwardInputs(NamedTuple):
+    """What every backward part reads: the table, the marked pairs cut into chunks (`live_pairs`),
+    the median pairs' layout indices and the cotangents (padded with a row for the empty tile)."""
+
+    table: jax.Array
+    surfel: jax.Array
+    valid: jax.Array
+    tile: jax.Array
+    first: jax.Array
+    offsets: jax.Array | None
+    pair_id: jax.Array
+    selected: jax.Array
+    g_median: jax.Array
+    g_dot_total: jax.Array
+    g_rows: jax.Array
+
+
 def backward_inputs(st: Static, residuals, cotangents):
     """What every backward part reads, from the forward's residuals and the output cotangents;
     and how many chunks of marked pairs there are to walk (`split_chunks`)."""
@@ -356,10 +374,11 @@ def backward_inputs(st: Static, residuals, cotangents):
     # (B, P) planes along P. Gathered as (B, P, F), XLA:CPU reads them with a stride; gathered
     # from (F, T + 1, P), it transposes them inside every fusion that reads them.
     g_rows = jnp.swapaxes(g_totals, 1, 2)                               # (T + 1, F, P)
-    return (table, surfel, valid, tile, first, offsets, pair_id, selected, g_median, g_dot_total, g_rows), num_live
+    return BackwardInputs(table, surfel, valid, tile, first, offsets, pair_id, selected, g_median, g_dot_total,
+                          g_rows), num_live
 
 
-def backward_part(st: Static, inputs, lo, hi):
+def backward_part(st: Static, inputs: BackwardInputs, lo, hi):
     """The gradient (N, NUM_FIELDS) of the per-surfel table from the marked chunks [lo, hi);
     the parts' gradients add up."""
     table, surfel, valid, tile, first, offsets, pair_id, selected, g_median, g_dot_total, g_rows = inputs

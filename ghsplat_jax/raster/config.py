@@ -28,6 +28,12 @@ class RasterConfig:
     lowpass_filter: bool = True            # 2DGS screen-space filter rho = min(rho3, 2|x - c|^2)
     chunk_size: int = 16                   # surfels blended per vectorised step within a tile
     batch_chunks: int = 128                # chunks evaluated together (cache footprint vs. loop overhead)
+    # The batch of each part when the carried compositor walks in parts from threads (the CPU
+    # training step, train/parted_step.py). Measured, not derived: 32 made a fern step at 1,250
+    # 1.14x and a lego step at 30,000 1.08x faster than 128 (interleaved, `benchmarks/train_speed.py
+    # --compare partbatch`). Likely cause: with one core idle XLA spreads a large batch's ops over
+    # both, and with both walking it cannot, so only the larger planes' cache cost is left.
+    part_batch_chunks: int = 32
     compositor: str = "carried"            # "carried" (one evaluation per pair, transmittance carried
                                            # across batches) or "logspace" (two-pass, the ablation)
     backward: str = "custom_vjp"           # "custom_vjp" (analytic) or "autodiff" (checkpointed; logspace only)
@@ -65,8 +71,8 @@ class RasterConfig:
             raise ValueError(f"sort must be 'auto' or 'xla', got {self.sort!r}")
         if self.on_overflow not in ("raise", "report"):
             raise ValueError(f"on_overflow must be 'raise' or 'report', got {self.on_overflow!r}")
-        if self.chunk_size < 1 or self.batch_chunks < 1:
-            raise ValueError("chunk_size and batch_chunks must be positive")
+        if self.chunk_size < 1 or self.batch_chunks < 1 or self.part_batch_chunks < 1:
+            raise ValueError("chunk_size, batch_chunks and part_batch_chunks must be positive")
         if not self.near > 0 or not self.far > self.near:
             raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))

@@ -5,7 +5,8 @@ program, and the compositor's loops take most of a CPU step; two jitted calls ma
 threads do run side by side (`benchmarks/loop_threads.py`). So this step runs as:
   1. `front`: the step's surfels, projected and binned, and the vjp of the per-surfel table;
   2. the compositor's forward walk, one call per part of the used chunks (`carried.split_chunks`:
-     whole tiles, about equal shares), each part from its own thread;
+     whole tiles, about equal shares), each part from its own thread, in batches of
+     `RasterConfig.part_batch_chunks` chunks;
   3. `middle`: the parts joined, the outputs, the loss and its cotangents for the compositor's
      outputs, and what the backward walk reads;
   4. the backward walk per part of the marked chunks, likewise;
@@ -82,7 +83,7 @@ def make_parted_step(optimizers, weights, parts: int):
         cotangents = pull_back(jnp.ones_like(loss))
         residuals = (table, surfel, valid, layout.chunk_tile, None, totals, selected, live)
         inputs, num_live = carried.backward_inputs(st, residuals, cotangents)
-        return inputs, carried.split_chunks(inputs[4], num_live, parts), loss, aux
+        return inputs, carried.split_chunks(inputs.first, num_live, parts), loss, aux
 
     @functools.partial(jax.jit, static_argnames=("width", "height"))
     def finish(state, pull_back, table_grads, loss, aux, means_lr, width, height):
@@ -94,6 +95,7 @@ def make_parted_step(optimizers, weights, parts: int):
         return apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
 
     def step(state, image, K, world_to_cam, means_lr, raster_cfg, width, height):
+        raster_cfg = dataclasses.replace(raster_cfg, batch_chunks=raster_cfg.part_batch_chunks)
         if raster_cfg.pair_capacity is None:  # as `render` sizes a traced render's buffer
             camera = Camera(K, world_to_cam, width, height)
             raster_cfg = dataclasses.replace(raster_cfg, pair_capacity=default_capacity(state.capacity, camera,
