@@ -188,3 +188,40 @@ def test_median_step_seconds_skips_the_clock_restart_of_a_resume(tmp_path):
     (tmp_path / STATS_NAME).write_text("".join(json.dumps({"step": i, "elapsed_s": e}) + "\n"
                                                for i, e in enumerate(elapsed)))
     assert median_step_seconds(tmp_path) == pytest.approx(0.5)
+
+
+def test_collect_keeps_a_lost_runs_row_from_the_last_report(tmp_path, caplog):
+    """A long experiment's runs folder can be lost between sessions while its report survives in
+    the repository: collecting again keeps such a run's row from results.json (with a warning),
+    takes every run that has its metrics.json from the run, and drops rows of unplanned runs."""
+    from ghsplat_jax.eval.runner import collect
+
+    exp_file = tmp_path / "e.toml"
+    exp_file.write_text(f'''name = "e"
+output = "{(tmp_path / 'runs').as_posix()}"
+results = "{(tmp_path / 'res').as_posix()}"
+[[scenes]]
+name = "a"
+data = "da"
+[[scenes]]
+name = "b"
+data = "db"
+''')
+    exp = load_experiment(exp_file)
+    for r, psnr in zip(exp.runs, (30.0, 27.0)):
+        _fake_run(r.out_dir, psnr, 0.02, 1000)
+    assert [row["psnr"] for row in collect(exp)[0]] == [30.0, 27.0]
+    report = json.loads((exp.results / "results.json").read_text())
+    report["rows"].append(dict(report["rows"][0], scene="gone"))  # a scene the file no longer plans
+    (exp.results / "results.json").write_text(json.dumps(report))
+    (exp.runs[0].out_dir / "metrics.json").unlink()                # run a lost, its report row kept
+    (exp.runs[1].out_dir / "metrics.json").write_text((exp.runs[1].out_dir / "metrics.json").read_text()
+                                                      .replace("27.0", "27.5"))  # run b re-evaluated
+    with caplog.at_level("WARNING", logger="ghsplat.run"):
+        rows = collect(exp)[0]
+    assert [(row["scene"], row["psnr"]) for row in rows] == [("a", 30.0), ("b", 27.5)]
+    assert "a/default: no metrics.json" in caplog.text and "results.json" in caplog.text
+    (exp.results / "results.json").write_text("not json")
+    with caplog.at_level("WARNING", logger="ghsplat.run"):
+        assert [row["scene"] for row in collect(exp)[0]] == ["b"]
+    assert "not a results report" in caplog.text

@@ -27,6 +27,7 @@ Experiment file layout (see experiments/*.toml):
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import re
@@ -307,17 +308,34 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     return {"rows": rows, "failed": failed, "reports": reports}
 
 
+def _earlier_rows(results: Path) -> dict[tuple[str, str], dict]:
+    """The rows of the experiment's last report (RESULTS/results.json), by (scene, variant)."""
+    path = Path(results) / "results.json"
+    try:
+        rows = json.loads(path.read_text())["rows"] if path.is_file() else []
+    except (ValueError, KeyError, TypeError) as exc:
+        log.warning("%s: not a results report (%s); earlier rows are not kept", path, exc)
+        return {}
+    return {(r.get("scene"), r.get("variant")): r for r in rows if isinstance(r, dict)}
+
+
 def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
-    """Rows of every finished run, and the reports written into the experiment folder."""
+    """Rows of every finished run, and the reports written into the experiment folder. A planned
+    run whose folder has no metrics.json (a long experiment's runs folder lost between machines
+    or sessions) keeps its row from the last report, with a warning, rather than vanishing."""
     from ghsplat_jax.eval.charts import write_charts, write_pareto_charts
     from ghsplat_jax.eval.report import run_row, write_results, write_table1
 
-    rows = []
+    rows, earlier = [], _earlier_rows(exp.results)
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
         if row is not None:
             contrib = bool(r.config.contrib_prune_every or r.config.contrib_prune_final)
             rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction, contrib_prune=contrib))
+        elif (r.scene, r.variant) in earlier:
+            log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir,
+                        Path(exp.results) / "results.json")
+            rows.append(earlier[(r.scene, r.variant)])
     if not rows:
         return rows, []
     name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
