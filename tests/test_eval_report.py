@@ -14,6 +14,15 @@ from ghsplat_jax.eval.runner import load_experiment
 from ghsplat_jax.train.config import ConfigError
 
 
+TWO_SCENES = '''[[scenes]]
+name = "a"
+data = "da"
+[[scenes]]
+name = "b"
+data = "db"
+'''
+
+
 def _fake_run(folder, psnr, l1, n, test=True):
     folder.mkdir(parents=True)
     split = {"psnr": psnr, "l1": l1, "ssim": 0.9, "num_views": 3}
@@ -135,13 +144,7 @@ results = "res/e"
 [train]
 steps = 1000
 lr_opacity = 0.04
-[[scenes]]
-name = "a"
-data = "da"
-[[scenes]]
-name = "b"
-data = "db"
-[presets.quick]
+''' + TWO_SCENES + '''[presets.quick]
 train = { steps = 20 }
 [[presets.quick.scenes]]
 name = "a"
@@ -200,13 +203,7 @@ def test_collect_keeps_a_lost_runs_row_from_the_last_report(tmp_path, caplog):
     exp_file.write_text(f'''name = "e"
 output = "{(tmp_path / 'runs').as_posix()}"
 results = "{(tmp_path / 'res').as_posix()}"
-[[scenes]]
-name = "a"
-data = "da"
-[[scenes]]
-name = "b"
-data = "db"
-''')
+''' + TWO_SCENES)
     exp = load_experiment(exp_file)
     for r, psnr in zip(exp.runs, (30.0, 27.0)):
         _fake_run(r.out_dir, psnr, 0.02, 1000)
