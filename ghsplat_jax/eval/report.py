@@ -14,6 +14,7 @@ from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
 
+RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
 RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds",
                   "step_seconds", "steps", "render_seconds_per_view", "run_dir")
 
@@ -119,5 +120,5 @@ def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path
                                                                  "steps", "render s/view")))
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
-    js = write_json(folder / "results.json", {"title": title, "machine": machine_info(), "rows": rows})
+    js = write_json(folder / RESULTS_NAME, {"title": title, "machine": machine_info(), "rows": rows})
     return [md, csv_path, js]

@@ -308,9 +308,8 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     return {"rows": rows, "failed": failed, "reports": reports}
 
 
-def _earlier_rows(results: Path) -> dict[tuple[str, str], dict]:
-    """The rows of the experiment's last report (RESULTS/results.json), by (scene, variant)."""
-    path = Path(results) / "results.json"
+def _earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
+    """The rows of the experiment's last report, its results.json at `path`, by (scene, variant)."""
     try:
         rows = json.loads(path.read_text())["rows"] if path.is_file() else []
     except (ValueError, KeyError, TypeError) as exc:
@@ -324,17 +323,17 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     run whose folder has no metrics.json (a long experiment's runs folder lost between machines
     or sessions) keeps its row from the last report, with a warning, rather than vanishing."""
     from ghsplat_jax.eval.charts import write_charts, write_pareto_charts
-    from ghsplat_jax.eval.report import run_row, write_results, write_table1
+    from ghsplat_jax.eval.report import RESULTS_NAME, run_row, write_results, write_table1
 
-    rows, earlier = [], _earlier_rows(exp.results)
+    report = Path(exp.results) / RESULTS_NAME
+    rows, earlier = [], _earlier_rows(report)
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
         if row is not None:
             contrib = bool(r.config.contrib_prune_every or r.config.contrib_prune_final)
             rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction, contrib_prune=contrib))
         elif (r.scene, r.variant) in earlier:
-            log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir,
-                        Path(exp.results) / "results.json")
+            log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir, report)
             rows.append(earlier[(r.scene, r.variant)])
     if not rows:
         return rows, []
