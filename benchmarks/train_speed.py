@@ -8,6 +8,7 @@
     python benchmarks/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
     python benchmarks/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
     python benchmarks/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
+    python benchmarks/train_speed.py --config C --checkpoint K --compare rev-interleaved --rev HEAD  # the same, one process
     python benchmarks/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
     python benchmarks/train_speed.py --config C --checkpoint K --compare threads  # one program vs two threads
     python benchmarks/train_speed.py --config C --checkpoint K --compare partbatch  # threads' batches of 128 vs 32
@@ -28,7 +29,9 @@ With `--compare skip` and `--compare pairskip` "previous" sets `raster.backward_
 pixel open at their start, as before pairs were skipped); "current" skips pairs. With `--compare
 rev` "previous" runs the code of git revision `--rev` (checked out into a temporary worktree)
 and "current" this tree's, in child processes as for malloc: a change's whole effect on the step,
-forward and backward. With `--compare pairs` "current" refits the pair buffer as the trainer
+forward and backward. `--compare rev-interleaved` does the same in one process, the revision's
+package imported beside this one's (`rev_session`) and the two steps interleaved, so the
+machine's drift hits both alike. With `--compare pairs` "current" refits the pair buffer as the trainer
 does after an epoch (the bucket of the most pairs a training view needs). With `--compare xla`
 "current" adds `--xla-flags` to XLA_FLAGS (compiler options are process-wide: child processes as
 for malloc), "previous" runs without them. With `--compare threads` "previous" runs the step as
@@ -66,7 +69,7 @@ from ghsplat_jax import host_memory
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.paths import datasets_root
 from ghsplat_jax.train import trainer
-from ghsplat_jax.train.config import TrainConfig, load_config
+from ghsplat_jax.train.config import TrainConfig, load_config, save_config
 from ghsplat_jax.train.run_dir import load_training_data
 from ghsplat_jax.train.state import fit_pool
 from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
@@ -132,6 +135,11 @@ def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: in
     for name, cfg in configs.items():
         with within(name):
             sessions[name] = _session(cfg, dataset, checkpoints[name], transforms.get(name))
+    return time_sessions(sessions, steps, within)
+
+
+def time_sessions(sessions: dict, steps: int, within=lambda name: contextlib.nullcontext()) -> dict:
+    """`time_steps` for compiled sessions {name: session}, interleaved."""
     starts = {name: int(session.state.step) for name, session in sessions.items()}
     samples = {name: [] for name in sessions}
     for k in range(steps):
@@ -168,7 +176,9 @@ def time_children(args, variants: dict, rounds: int = 2) -> dict:
             cmd += [flag for flag, value in (("--config", args.config), ("--checkpoint", args.checkpoint)) if value
                     for flag in (flag, str(Path(value).resolve()))]
             child_env = dict(os.environ, PYTHONPATH=str(tree), GHSPLAT_DATASETS=str(datasets_root()), **env)
-            out = subprocess.run(cmd, env=child_env, cwd=tree, check=True, capture_output=True, text=True).stdout
+            # In this directory, where a config's relative data path points.
+            out = subprocess.run(cmd, env=child_env, cwd=os.getcwd(), check=True, capture_output=True,
+                                 text=True).stdout
             row = json.loads(out.strip().splitlines()[-1])
             samples[name] += row.pop("samples")
             facts[name] = {k: row[k] for k in ("step", "surfels", "pool", "pair_capacity")} | dict(
@@ -180,6 +190,35 @@ def time_policies(args) -> dict:
     """Rows "previous" (glibc's default policy) and "current" (host_memory's), this tree's code."""
     return time_children(args, {"previous": (ROOT, {host_memory.OPT_OUT: "1"}),
                                 "current": (ROOT, {host_memory.OPT_OUT: "0"})}, args.rounds)
+
+
+def rev_session(tree: Path, args, checkpoint: Path | None):
+    """A compiled training session of the code in `tree`, imported beside this tree's as the
+    package `ghsplat_rev` (its source copied with the package name rewritten), so both run in one
+    process and their steps interleave: this machine's speed drifts by up to 2x within minutes,
+    which child processes one after the other cannot separate from a change's effect."""
+    import importlib
+
+    copy = Path(tempfile.mkdtemp(prefix="ghsplat_rev_"))
+    for src in (tree / "ghsplat_jax").rglob("*.py"):
+        dst = copy / "ghsplat_rev" / src.relative_to(tree / "ghsplat_jax")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_text(src.read_text().replace("ghsplat_jax", "ghsplat_rev"))
+    sys.path.insert(0, str(copy))
+    os.environ["GHSPLAT_DATASETS"] = str(datasets_root())  # the copy would look beside itself
+    rev = lambda name: importlib.import_module(f"ghsplat_rev.{name}")
+    path = args.config
+    if not path:  # a scene preset is this tree's TrainConfig: the revision reads it from a file
+        path = save_config(SCENES[args.scene], Path(tempfile.mkdtemp()) / "config.toml")
+    config = dataclasses.replace(rev("train.config").load_config(path), progress=False, checkpoint_every=0)
+    session = rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), rev("train.run_dir").load_training_data(config),
+                                            resume=False)
+    if checkpoint is not None:
+        session._restore(checkpoint)
+    state0 = session.state
+    session.step(int(state0.step))  # compile
+    session.state = state0
+    return session
 
 
 @contextlib.contextmanager
@@ -201,8 +240,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "xla", "threads",
-                                          "partbatch"),
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "rev-interleaved",
+                                          "xla", "threads", "partbatch"),
                     default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
@@ -210,10 +249,11 @@ def main(argv=None) -> int:
                          "chunk against the live pairs; pairskip: the chunks holding a live pair against the "
                          "live pairs alone; pairs: the checkpoint's pair buffer against the one the trainer "
                          "refits to after an epoch; rev: the code of git revision --rev against this tree's, "
-                         "in child processes; xla: XLA_FLAGS as set against with --xla-flags added; threads: "
+                         "in child processes; rev-interleaved: the same in one process, steps interleaved; xla: XLA_FLAGS as set against with --xla-flags added; threads: "
                          "the step as one program against its compositor in two threads; partbatch: the threads' "
                          "walks in the one-program batch against raster.part_batch_chunks")
-    ap.add_argument("--rev", default="HEAD", help="with --compare rev: the baseline revision (default HEAD)")
+    ap.add_argument("--rev", default="HEAD", help="with --compare rev or rev-interleaved: the baseline revision "
+                                                  "(default HEAD)")
     ap.add_argument("--xla-flags", default="", help="with --compare xla: the compiler flags to try")
     ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc, rev or xla: child processes per variant")
     args = ap.parse_args(argv)
@@ -234,6 +274,14 @@ def main(argv=None) -> int:
                                  text=True).stdout.strip()
             rows = time_children(args, {"previous": (tree, {}), "current": (ROOT, {})}, args.rounds)
         previous = f"the code of revision {rev} ({args.rev})"
+    elif args.compare == "rev-interleaved":
+        host_memory.reuse_freed_memory()  # as `ghsplat train` runs (process-wide: both variants)
+        with checkout(args.rev) as tree:
+            rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, check=True, capture_output=True,
+                                 text=True).stdout.strip()
+            sessions = {"previous": rev_session(tree, args, checkpoint), "current": _session(config, dataset, checkpoint)}
+        rows = time_sessions(sessions, args.steps)
+        previous = f"the code of revision {rev} ({args.rev}), in the same process, steps interleaved"
     elif args.compare == "xla":
         if not args.xla_flags:
             ap.error("--compare xla needs --xla-flags")

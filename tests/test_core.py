@@ -38,6 +38,28 @@ def test_sh_dc_only_colour_and_basis_orthonormality():
     np.testing.assert_allclose(gram, np.eye(16), atol=0.03)
 
 
+def test_sh_colour_and_gradients_match_the_basis_contraction():
+    """The planes-and-hand-written-gradient colour equals basis . coefficients, with autodiff's
+    gradients, at every degree and with unused higher bands in sh_rest."""
+    r = np.random.default_rng(2)
+    dc, rest = jnp.asarray(r.normal(size=(2, 7, 3)), jnp.float32), jnp.asarray(r.normal(size=(2, 7, 15, 3)), jnp.float32)
+    d = r.normal(size=(2, 7, 3))
+    dirs = jnp.asarray(d / np.linalg.norm(d, axis=-1, keepdims=True), jnp.float32)
+    g = jnp.asarray(r.normal(size=(2, 7, 3)), jnp.float32)
+
+    def contraction(dc, rest, dirs, degree):
+        k = (degree + 1) ** 2
+        coeffs = jnp.concatenate([dc[..., None, :], rest[..., : k - 1, :]], axis=-2)
+        return jnp.maximum(jnp.einsum("...k,...kc->...c", sh.basis(dirs, degree), coeffs) + 0.5, 0.0)
+
+    for degree in range(4):
+        ours, pull = jax.vjp(lambda *a: sh.evaluate(*a, degree), dc, rest, dirs)
+        want, pull_want = jax.vjp(lambda *a: contraction(*a, degree), dc, rest, dirs)
+        np.testing.assert_allclose(ours, want, atol=1e-5)
+        for got, expected in zip(pull(g), pull_want(g)):
+            np.testing.assert_allclose(got, expected, atol=1e-5)
+
+
 def test_camera_look_at_and_centre():
     w2c = gs.look_at([1.0, -2.0, 0.5], [0.0, 0.0, 0.5])
     cam = gs.Camera(K=gs.intrinsics(64, 48, 90), world_to_cam=w2c, width=64, height=48)

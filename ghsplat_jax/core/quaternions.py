@@ -20,13 +20,16 @@ _TINY = 1e-12
 
 # -------------------------------------------------------------------- one formula each
 
-def _matrix(q, xp):
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
+def _matrix_rows(w, x, y, z):
+    return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
+
+
+def _matrix(q, xp):
+    rows = _matrix_rows(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
     return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
@@ -43,17 +46,28 @@ def _multiply(a, b, xp):
 
 # -------------------------------------------------------------------- jnp (float32, traced)
 
-def safe_normalize(q: jnp.ndarray, axis: int = -1) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(q / |q|, is_valid). Zero or non-finite q gives identity and is_valid False.
-
-    The double `where` keeps gradients finite for zero inputs.
-    """
-    sq = jnp.sum(q * q, axis=axis, keepdims=True)
+def _unit_parts(parts):
+    """The components of q / |q| and whether q is valid (identity where not), with finite
+    gradients for zero inputs (the double `where`)."""
+    sq = sum(p * p for p in parts)
     valid = (sq > _TINY) & jnp.isfinite(sq)
-    identity = jnp.zeros_like(q).at[..., 0].set(1.0)
-    safe_q = jnp.where(valid, q, identity)
-    safe_sq = jnp.where(valid, sq, 1.0)
-    return safe_q / jnp.sqrt(safe_sq), valid[..., 0]
+    norm = jnp.sqrt(jnp.where(valid, sq, 1.0))
+    return [jnp.where(valid, p, 1.0 if i == 0 else 0.0) / norm for i, p in enumerate(parts)], valid
+
+
+def safe_normalize(q: jnp.ndarray, axis: int = -1) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(q / |q|, is_valid). Zero or non-finite q gives identity and is_valid False."""
+    q = jnp.moveaxis(q, axis, -1)
+    unit, valid = _unit_parts([q[..., i] for i in range(q.shape[-1])])
+    return jnp.moveaxis(jnp.stack(unit, axis=-1), -1, axis), valid
+
+
+def rotation_planes(q: jnp.ndarray) -> tuple[list[list[jnp.ndarray]], jnp.ndarray]:
+    """The rotation matrices of q (..., 4), normalised as `safe_normalize` does, as (...) planes
+    R[i][j], and whether each q was valid. For code written on planes (`raster.project`): on
+    XLA:CPU every slice of a (..., 3, 3) array becomes a full-size pad in the gradient."""
+    unit, valid = _unit_parts([q[..., i] for i in range(4)])
+    return _matrix_rows(*unit), valid
 
 
 def to_rotation_matrix(q: jnp.ndarray) -> jnp.ndarray:

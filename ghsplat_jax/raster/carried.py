@@ -25,6 +25,7 @@ p(x) = a x + b y + c0 with
 a = M1 x M2, b = M2 x M0, c0 = M0 x M1 (M's rows), so p = pc + a dx + b dy with (dx, dy) = x - c
 and pc = p(c). Then (u, v) = (p0, p1) / p2 and, since M2 . a = M2 . b = 0, the hit depth
 u M20 + v M21 + M22 is det(M) / p2. Same contract as `project.evaluate_pixels`, fewer flops.
+`project` computes pc, a, b and det(M) per surfel (`Projected.p_center`, `p_dx`, `p_dy`, `det`).
 
 With `offsets` (T, S, 2) (`samples.PixelSamples`), a tile's S sample points stand in for its
 pixels: the same math, with each batch gathering its tiles' points instead of a constant grid.
@@ -62,13 +63,8 @@ EDGE_ON = 1e6  # |p0|, |p1| >= 1e6 |p2|: the hit would lie at infinity; the filt
 
 def pair_table(p: Projected) -> jax.Array:
     """(N, NUM_FIELDS) per-surfel rows the compositor gathers per pair (differentiable)."""
-    M0, M1, M2 = p.M[:, 0], p.M[:, 1], p.M[:, 2]
-    a, b, c0 = jnp.cross(M1, M2), jnp.cross(M2, M0), jnp.cross(M0, M1)
-    cx, cy = p.center[:, 0], p.center[:, 1]
-    pc = a * cx[:, None] + b * cy[:, None] + c0
-    det = jnp.sum(M2 * c0, axis=1)
-    return jnp.concatenate([pc, a, b, det[:, None], p.center, p.opacity[:, None], p.depth[:, None],
-                            p.color, p.normal], axis=1)
+    return jnp.concatenate([p.p_center, p.p_dx, p.p_dy, p.det[:, None], p.center, p.opacity[:, None],
+                            p.depth[:, None], p.color, p.normal], axis=1)
 
 
 def _corner_offsets(f, tile, st: Static):

@@ -2,6 +2,12 @@
 
 Follows the 2DGS reference: M = K [s_u t_u | s_v t_v | mu] in camera space; the screen box
 and the filter centre come from the dual conic of the 3-sigma ellipse.
+
+Written on (N,) planes, one per vector or matrix entry, and stacked only into the outputs. On
+XLA:CPU the gradient of every slice of an (N, 3) or (N, 3, 3) intermediate is a full-size pad,
+and that of every broadcast against a small axis a YNN reduction, each an op of its own. Written
+on such arrays, pads, YNN reductions and concatenations took 232 ms of thread time in a Table 1
+training step (164k surfels, 192x144; 122 ms on planes), and that step ran 1.25x slower.
 """
 
 from __future__ import annotations
@@ -13,7 +19,6 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core import quaternions, sh
 from ghsplat_jax.core.camera import Camera
-from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.surfels import Surfels
 
 CUTOFF = 3.0                       # box and ellipse at 3 sigma
@@ -32,6 +37,13 @@ class Projected:
     color: jax.Array      # (N,3)
     normal: jax.Array     # (N,3) world frame, facing the camera
     depth: jax.Array      # (N,) view depth of the centre (sort key, filter-branch depth)
+    # M as a homography about `center` (`carried`): the pixel-plane cross product p(center + d) =
+    # p_center + p_dx d_x + p_dy d_y, with p(x) = (x M2 - M0) x (y M2 - M1) = a x + b y + c0 for M's
+    # rows, a = M1 x M2, b = M2 x M0, c0 = M0 x M1; and det(M) = M2 . c0 (the hit depth's numerator).
+    p_center: jax.Array   # (N,3)
+    p_dx: jax.Array       # (N,3) a
+    p_dy: jax.Array       # (N,3) b
+    det: jax.Array        # (N,)
     box_min: jax.Array    # (N,2) screen box of the 3-sigma ellipse, pixels (visibility and radii)
     box_max: jax.Array    # (N,2)
     bin_min: jax.Array    # (N,2) opacity-aware box: where alpha can reach 1/255 (binning)
@@ -48,18 +60,21 @@ def _finite_rows(x: jax.Array) -> jax.Array:
     return jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
 
 
-def _sum3(x: jax.Array) -> jax.Array:
-    """x[:, 0] + x[:, 1] + x[:, 2] of an (N, 3) product: it fuses with the product, where
-    jnp.sum over the small axis is a YNN reduction of its own (about 1.3 ms at 100k surfels)."""
-    return x[:, 0] + x[:, 1] + x[:, 2]
+def _planes(x: jax.Array) -> list[jax.Array]:
+    return [x[:, i] for i in range(x.shape[1])]
 
 
-def _times(A: jax.Array, B: jax.Array) -> jax.Array:
-    """A @ B[n] for every n: (3, 3) x (N, 3, k) -> (N, 3, k), written out row by row as scalar
-    times (N, k) planes. As an einsum, XLA:CPU runs 100k of these 3x3 products as a batched dot at
-    about 3 ms; as broadcast (N, 3, k) products, their transpose sums over the size-3 axis, six
-    YNN reductions of 8 ms each in a training step's pull-back (fern, 82k surfels)."""
-    return jnp.stack([sum(A[i, j] * B[:, j, :] for j in range(3)) for i in range(3)], axis=1)
+def _stack(planes) -> jax.Array:
+    return jnp.stack(planes, axis=1)
+
+
+def _matvec(A: jax.Array, v: list) -> list:
+    """A (3, 3) times a vector of planes."""
+    return [sum(A[i, j] * v[j] for j in range(3)) for i in range(3)]
+
+
+def _cross(u: list, v: list) -> list:
+    return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
 
 
 def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter: bool,
@@ -69,32 +84,31 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
               & jnp.isfinite(s.opacity_logits) & _finite_rows(s.sh_dc) & _finite_rows(s.sh_rest))
     # Non-finite inputs are replaced before any arithmetic so no NaN reaches gradients.
     clean = lambda x, fill=0.0: jnp.where(finite.reshape((n,) + (1,) * (x.ndim - 1)), x, fill)
-    means = clean(s.means)
-    quat, quat_ok = quaternions.safe_normalize(clean(s.quats))
-    scales = jnp.exp(jnp.clip(clean(s.log_scales), *LOG_SCALE_RANGE))
+    means = _planes(clean(s.means))
+    R_world, quat_ok = quaternions.rotation_planes(clean(s.quats))  # columns t_u, t_v, n
+    scales = [jnp.exp(jnp.clip(x, *LOG_SCALE_RANGE)) for x in _planes(clean(s.log_scales))]
     opacity = jax.nn.sigmoid(clean(s.opacity_logits, -20.0))
     invalid = ~(finite & quat_ok)
 
-    R_world = quaternions.to_rotation_matrix(quat)                 # columns t_u, t_v, n
     R_wc, t_wc = cam.world_to_cam[:3, :3], cam.world_to_cam[:3, 3]
-    mu_c = jnp.matmul(means, R_wc.T, precision=FLOAT32) + t_wc
-    tangents_c = _times(R_wc, R_world[:, :, :2]) * scales[:, None, :]
-    local = jnp.concatenate([tangents_c, mu_c[:, :, None]], axis=2)  # [s_u t_u | s_v t_v | mu]
-    M = _times(cam.K, local)
-    depth = mu_c[:, 2]
+    mu_c = [m + t_wc[i] for i, m in enumerate(_matvec(R_wc, means))]
+    tangents_c = [[t * scales[j] for t in _matvec(R_wc, [R_world[k][j] for k in range(3)])] for j in range(2)]
+    columns = [_matvec(cam.K, c) for c in (*tangents_c, mu_c)]      # of K [s_u t_u | s_v t_v | mu]
+    M = [[columns[j][i] for j in range(3)] for i in range(3)]       # rows
+    depth = mu_c[2]
 
     # Dual conic of u^2 + v^2 = CUTOFF^2: C* = M diag(c^2, c^2, -1) M^T.
-    center, half, bounded = _ellipse_box(M, jnp.full((n,), CUTOFF**2), depth)
+    center, half, bounded = _ellipse_box(M, CUTOFF**2, depth)
     reach = FILTER_REACH if lowpass_filter else 0.5
-    half = jnp.maximum(half, reach)
+    half = [jnp.maximum(h, reach) for h in half]
 
     safe_depth = jnp.where(jnp.abs(depth) > 1e-12, depth, 1.0)
-    projected_mean = M[:, :2, 2] / safe_depth[:, None]
-    center = jnp.where(bounded[:, None], center, projected_mean)  # the reference does the same
+    # Where the ellipse is unbounded, the projected mean (the reference does the same).
+    center = [jnp.where(bounded, c, M[i][2] / safe_depth) for i, c in enumerate(center)]
     # An ellipse that crosses the camera plane projects to an unbounded conic: whole screen.
     big = jnp.float32(1e9)
-    box_min = jnp.where(bounded[:, None], center - half, -big)
-    box_max = jnp.where(bounded[:, None], center + half, big)
+    box_min = [jnp.where(bounded, c - h, -big) for c, h in zip(center, half)]
+    box_max = [jnp.where(bounded, c + h, big) for c, h in zip(center, half)]
 
     # Where alpha = opacity exp(-rho / 2) can reach 1/255: rho <= rho_max = 2 ln(255 opacity). As
     # rho = min(rho3, rho2), that region is the ellipse u^2 + v^2 <= rho_max joined with the
@@ -104,53 +118,65 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     rho_max = jnp.maximum(2.0 * jnp.log(jnp.maximum(255.0 * opacity, 1e-30)), 0.0)
     cut2 = jnp.minimum(rho_max, CUTOFF**2)
     tight_center, tight_half, tight_bounded = _ellipse_box(M, cut2, depth)
-    tight_half = jnp.maximum(tight_half, 0.5)
     disc = (lambda r2: jnp.sqrt(0.5 * r2)) if lowpass_filter else (lambda r2: jnp.zeros_like(r2))
     faint = rho_max <= 0.0  # alpha < 1/255 everywhere: no pixel at all
-    box_disc = disc(cut2)[:, None]
-    bin_min = jnp.where(tight_bounded[:, None], jnp.minimum(tight_center - tight_half, center - box_disc), -big)
-    bin_max = jnp.where(tight_bounded[:, None], jnp.maximum(tight_center + tight_half, center + box_disc), big)
-    bin_min, bin_max = jnp.where(faint[:, None], big, bin_min), jnp.where(faint[:, None], -big, bin_max)
+    box_disc = disc(cut2)
+    bin_min, bin_max = [], []
+    for c, tc, th in zip(center, tight_center, tight_half):
+        th = jnp.maximum(th, 0.5)
+        bin_min.append(jnp.where(faint, big, jnp.where(tight_bounded, jnp.minimum(tc - th, c - box_disc), -big)))
+        bin_max.append(jnp.where(faint, -big, jnp.where(tight_bounded, jnp.maximum(tc + th, c + box_disc), big)))
     conic = _pixel_conic(M, rho_max, center)
 
     if means2d_probe is not None:
         # Shifts the projected centre column only; the filter centre keeps its value, so the
         # probe's gradient excludes the filter branch like the reference's densification signal.
-        shift = means2d_probe * M[:, 2, 2][:, None]
-        M = M.at[:, 0, 2].add(shift[:, 0]).at[:, 1, 2].add(shift[:, 1])
+        probe = _planes(means2d_probe)
+        M[0][2] = M[0][2] + probe[0] * M[2][2]
+        M[1][2] = M[1][2] + probe[1] * M[2][2]
 
     culled_near = ~invalid & (depth <= near)
-    on_screen = (box_max[:, 0] > 0) & (box_min[:, 0] < cam.width) & (box_max[:, 1] > 0) & (box_min[:, 1] < cam.height)
-    visible = ~invalid & ~culled_near & on_screen & jnp.all(jnp.isfinite(M.reshape(n, 9)), 1)
+    on_screen = (box_max[0] > 0) & (box_min[0] < cam.width) & (box_max[1] > 0) & (box_min[1] < cam.height)
+    visible = ~invalid & ~culled_near & on_screen
+    for m in (m for row in M for m in row):
+        visible &= jnp.isfinite(m)
 
-    cam_center = cam.center
-    view_dir = means - cam_center
-    dir_norm2 = _sum3(view_dir**2)[:, None]
-    dirs = view_dir / jnp.sqrt(jnp.where(dir_norm2 > 0, dir_norm2, 1.0))
-    color = sh.evaluate(clean(s.sh_dc), clean(s.sh_rest), dirs, sh_degree)
-    normal = R_world[:, :, 2]
-    normal = jnp.where(_sum3(normal * view_dir)[:, None] > 0, -normal, normal)
+    view_dir = [m - cam.center[i] for i, m in enumerate(means)]
+    dir_norm2 = sum(v * v for v in view_dir)
+    dir_norm = jnp.sqrt(jnp.where(dir_norm2 > 0, dir_norm2, 1.0))
+    color = sh.evaluate(clean(s.sh_dc), clean(s.sh_rest), _stack([v / dir_norm for v in view_dir]), sh_degree)
+    normal = [R_world[k][2] for k in range(3)]
+    away = sum(nk * vk for nk, vk in zip(normal, view_dir)) > 0
+    normal = [jnp.where(away, -x, x) for x in normal]
 
-    zero_if_hidden = lambda x: jnp.where(visible.reshape((n,) + (1,) * (x.ndim - 1)), x, 0.0)
+    hide = lambda x, fill=0.0: jnp.where(visible, x, fill)
+    M = [[hide(M[i][j], float(i == j)) for j in range(3)] for i in range(3)]
+    center = [hide(c) for c in center]
     return Projected(
-        M=jnp.where(visible[:, None, None], M, jnp.eye(3)), center=zero_if_hidden(center),
-        opacity=zero_if_hidden(opacity), color=zero_if_hidden(color), normal=zero_if_hidden(normal),
-        depth=jnp.where(visible, depth, jnp.inf), box_min=box_min, box_max=box_max, bin_min=bin_min,
-        bin_max=bin_max, conic=conic, reach=disc(rho_max), bounded=tight_bounded, visible=visible, invalid=invalid,
-        culled_near=culled_near)
+        M=jnp.stack([_stack(row) for row in M], axis=1), center=_stack(center), opacity=hide(opacity),
+        color=jnp.where(visible[:, None], color, 0.0), normal=_stack([hide(x) for x in normal]),
+        depth=hide(depth, jnp.inf), **_homography(M, center), box_min=_stack(box_min), box_max=_stack(box_max), bin_min=_stack(bin_min), bin_max=_stack(bin_max), conic=conic, reach=disc(rho_max),
+        bounded=tight_bounded, visible=visible, invalid=invalid, culled_near=culled_near)
+
+
+def _homography(M, center) -> dict:
+    """`Projected`'s p_center, p_dx, p_dy and det from M's rows and the centre (planes)."""
+    a, b, c0 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
+    p_center = [a[i] * center[0] + b[i] * center[1] + c0[i] for i in range(3)]
+    det = M[2][0] * c0[0] + M[2][1] * c0[1] + M[2][2] * c0[2]
+    return dict(p_center=_stack(p_center), p_dx=_stack(a), p_dy=_stack(b), det=det)
 
 
 def _ellipse_box(M, cut2, depth):
     """Centre, half-extent and boundedness of the projected ellipse u^2 + v^2 <= cut2 from its
-    dual conic C* = M diag(cut2, cut2, -1) M^T."""
-    f = jnp.stack([cut2, cut2, -jnp.ones_like(cut2)], axis=1)
-    dist = _sum3(f * M[:, 2] ** 2)
+    dual conic C* = M diag(cut2, cut2, -1) M^T (M as rows of planes)."""
+    f = (cut2, cut2, -1.0)
+    dual = lambda r, q: sum(f[k] * M[r][k] * M[q][k] for k in range(3))
+    dist = dual(2, 2)
     bounded = dist < -1e-12 * jnp.maximum(depth**2, 1e-12)  # ellipse entirely in front of the camera
     safe_dist = jnp.where(bounded, dist, -1.0)
-    center = jnp.stack([_sum3(f * M[:, 0] * M[:, 2]), _sum3(f * M[:, 1] * M[:, 2])], 1)
-    center = center / safe_dist[:, None]
-    diag = jnp.stack([_sum3(f * M[:, 0] ** 2), _sum3(f * M[:, 1] ** 2)], 1) / safe_dist[:, None]
-    half = jnp.sqrt(jnp.maximum(center**2 - diag, 1e-4))
+    center = [dual(0, 2) / safe_dist, dual(1, 2) / safe_dist]
+    half = [jnp.sqrt(jnp.maximum(c * c - dual(i, i) / safe_dist, 1e-4)) for i, c in enumerate(center)]
     return center, half, bounded
 
 
@@ -158,13 +184,14 @@ def _pixel_conic(M, cut2, origin):
     """q(d) = p0^2 + p1^2 - cut2 p2^2 with p = adj(M) (origin + d, 1), as the coefficients
     (dxx, dxy, dyy, dx, dy, 1) of a quadratic in the pixel offset d: q <= 0 inside the ellipse.
     Normalised by its largest coefficient, so float32 comparisons stay meaningful."""
-    a, b, c0 = jnp.cross(M[:, 1], M[:, 2]), jnp.cross(M[:, 2], M[:, 0]), jnp.cross(M[:, 0], M[:, 1])
-    pc = a * origin[:, :1] + b * origin[:, 1:] + c0           # p at the origin
-    w = jnp.stack([jnp.ones_like(cut2), jnp.ones_like(cut2), -cut2], axis=1)
-    dot = lambda x, y: _sum3(w * x * y)
-    q = jnp.stack([dot(a, a), dot(a, b), dot(b, b), dot(a, pc), dot(b, pc), dot(pc, pc)], axis=1)
-    scale = jnp.max(jnp.abs(q[:, :3]), axis=1, keepdims=True)
-    return jax.lax.stop_gradient(q / jnp.where(scale > 0, scale, 1.0))
+    a, b, c0 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
+    pc = [a[i] * origin[0] + b[i] * origin[1] + c0[i] for i in range(3)]  # p at the origin
+    w = (1.0, 1.0, -cut2)
+    dot = lambda x, y: sum(w[k] * x[k] * y[k] for k in range(3))
+    q = [dot(a, a), dot(a, b), dot(b, b), dot(a, pc), dot(b, pc), dot(pc, pc)]
+    scale = jnp.maximum(jnp.maximum(jnp.abs(q[0]), jnp.abs(q[1])), jnp.abs(q[2]))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    return jax.lax.stop_gradient(_stack([x / scale for x in q]))
 
 
 def evaluate_pixels(M, center, opacity, depth, xy, near: float, lowpass_filter: bool):
