@@ -211,8 +211,8 @@ def rev_session(tree: Path, args, checkpoint: Path | None):
     if not path:  # a scene preset is this tree's TrainConfig: the revision reads it from a file
         path = save_config(SCENES[args.scene], Path(tempfile.mkdtemp()) / "config.toml")
     config = dataclasses.replace(rev("train.config").load_config(path), progress=False, checkpoint_every=0)
-    session = rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), rev("train.run_dir").load_training_data(config),
-                                            resume=False)
+    dataset = rev("train.run_dir").load_training_data(config)
+    session = rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
     if checkpoint is not None:
         session._restore(checkpoint)
     state0 = session.state
@@ -249,9 +249,10 @@ def main(argv=None) -> int:
                          "chunk against the live pairs; pairskip: the chunks holding a live pair against the "
                          "live pairs alone; pairs: the checkpoint's pair buffer against the one the trainer "
                          "refits to after an epoch; rev: the code of git revision --rev against this tree's, "
-                         "in child processes; rev-interleaved: the same in one process, steps interleaved; xla: XLA_FLAGS as set against with --xla-flags added; threads: "
-                         "the step as one program against its compositor in two threads; partbatch: the threads' "
-                         "walks in the one-program batch against raster.part_batch_chunks")
+                         "in child processes; rev-interleaved: the same in one process, steps interleaved; "
+                         "xla: XLA_FLAGS as set against with --xla-flags added; threads: the step as one "
+                         "program against its compositor in two threads; partbatch: the threads' walks in the "
+                         "one-program batch against raster.part_batch_chunks")
     ap.add_argument("--rev", default="HEAD", help="with --compare rev or rev-interleaved: the baseline revision "
                                                   "(default HEAD)")
     ap.add_argument("--xla-flags", default="", help="with --compare xla: the compiler flags to try")

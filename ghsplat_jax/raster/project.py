@@ -5,9 +5,10 @@ and the filter centre come from the dual conic of the 3-sigma ellipse.
 
 Written on (N,) planes, one per vector or matrix entry, and stacked only into the outputs. On
 XLA:CPU the gradient of every slice of an (N, 3) or (N, 3, 3) intermediate is a full-size pad,
-and that of every broadcast against a small axis a YNN reduction, each an op of its own. Written
-on such arrays, pads, YNN reductions and concatenations took 232 ms of thread time in a Table 1
-training step (164k surfels, 192x144; 122 ms on planes), and that step ran 1.25x slower.
+and that of every broadcast against a small axis a YNN reduction, each an op of its own. On
+such arrays, pads, YNN reductions and concatenations took 232 ms of thread time in a Table 1
+training step (164k surfels, 192x144), and 122 ms on planes; with the SH colour's written-out
+gradient (`core.sh`), that step ran 1.25x faster.
 """
 
 from __future__ import annotations
@@ -155,14 +156,21 @@ def project(s: Surfels, cam: Camera, near: float, sh_degree: int, lowpass_filter
     return Projected(
         M=jnp.stack([_stack(row) for row in M], axis=1), center=_stack(center), opacity=hide(opacity),
         color=jnp.where(visible[:, None], color, 0.0), normal=_stack([hide(x) for x in normal]),
-        depth=hide(depth, jnp.inf), **_homography(M, center), box_min=_stack(box_min), box_max=_stack(box_max), bin_min=_stack(bin_min), bin_max=_stack(bin_max), conic=conic, reach=disc(rho_max),
-        bounded=tight_bounded, visible=visible, invalid=invalid, culled_near=culled_near)
+        depth=hide(depth, jnp.inf), **_homography(M, center), box_min=_stack(box_min), box_max=_stack(box_max),
+        bin_min=_stack(bin_min), bin_max=_stack(bin_max), conic=conic, reach=disc(rho_max), bounded=tight_bounded,
+        visible=visible, invalid=invalid, culled_near=culled_near)
+
+
+def _pixel_plane(M, origin):
+    """p(x) = (x M2 - M0) x (y M2 - M1) = a x + b y + c0 for M's rows (planes): p at `origin`,
+    a = M1 x M2, b = M2 x M0 and c0 = M0 x M1."""
+    a, b, c0 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
+    return [a[i] * origin[0] + b[i] * origin[1] + c0[i] for i in range(3)], a, b, c0
 
 
 def _homography(M, center) -> dict:
     """`Projected`'s p_center, p_dx, p_dy and det from M's rows and the centre (planes)."""
-    a, b, c0 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
-    p_center = [a[i] * center[0] + b[i] * center[1] + c0[i] for i in range(3)]
+    p_center, a, b, c0 = _pixel_plane(M, center)
     det = M[2][0] * c0[0] + M[2][1] * c0[1] + M[2][2] * c0[2]
     return dict(p_center=_stack(p_center), p_dx=_stack(a), p_dy=_stack(b), det=det)
 
@@ -184,8 +192,7 @@ def _pixel_conic(M, cut2, origin):
     """q(d) = p0^2 + p1^2 - cut2 p2^2 with p = adj(M) (origin + d, 1), as the coefficients
     (dxx, dxy, dyy, dx, dy, 1) of a quadratic in the pixel offset d: q <= 0 inside the ellipse.
     Normalised by its largest coefficient, so float32 comparisons stay meaningful."""
-    a, b, c0 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
-    pc = [a[i] * origin[0] + b[i] * origin[1] + c0[i] for i in range(3)]  # p at the origin
+    pc, a, b, _ = _pixel_plane(M, origin)  # p at the origin
     w = (1.0, 1.0, -cut2)
     dot = lambda x, y: sum(w[k] * x[k] * y[k] for k in range(3))
     q = [dot(a, a), dot(a, b), dot(b, b), dot(a, pc), dot(b, pc), dot(pc, pc)]
