@@ -102,7 +102,11 @@ def refit_pairs(session) -> None:
 
 def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
     """A training session at `checkpoint` (or initialisation), `transform(session)` applied, compiled."""
-    session = trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
+    return _compiled(trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False), checkpoint, transform)
+
+
+def _compiled(session, checkpoint: Path | None, transform=None):
+    """`session` at `checkpoint` (or as it is), `transform(session)` applied, its step compiled."""
     if checkpoint is not None:
         session._restore(checkpoint)
     if transform is not None:
@@ -212,13 +216,7 @@ def rev_session(tree: Path, args, checkpoint: Path | None):
         path = save_config(SCENES[args.scene], Path(tempfile.mkdtemp()) / "config.toml")
     config = dataclasses.replace(rev("train.config").load_config(path), progress=False, checkpoint_every=0)
     dataset = rev("train.run_dir").load_training_data(config)
-    session = rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False)
-    if checkpoint is not None:
-        session._restore(checkpoint)
-    state0 = session.state
-    session.step(int(state0.step))  # compile
-    session.state = state0
-    return session
+    return _compiled(rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False), checkpoint)
 
 
 @contextlib.contextmanager
