@@ -22,8 +22,9 @@ $(STAMP): pyproject.toml
 	  echo "note: no chromium-headless-shell; the viewer screenshot test will be skipped"
 	touch $(STAMP)
 
+# One pytest process per test file (tests/run_suite.py says why), then one summary.
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python tests/run_suite.py
 
 demo: install
 	$(BIN)/ghsplat demo

@@ -160,3 +160,19 @@ def test_quick_demo_writes_every_stage(tmp_path):
     assert read_pixels(out / "views" / "greenhouse_rgb.png").shape == (320, 480, 3)
     report = (out / "report.md").read_text()
     assert f"| surfels | {metrics['num_gaussians']} |" in report and "| training steps | 200 of the 2DGS schedule (changed: none) |" in report
+
+
+def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys):
+    """`make test`'s runner (tests/run_suite.py): every file runs, a failure or a crash fails the
+    suite, and the summary names each bad file with what happened to it."""
+    from run_suite import run
+
+    (tmp_path / "test_ok.py").write_text("def test_ok():\n    pass\n")
+    (tmp_path / "test_bad.py").write_text("def test_bad():\n    assert False\n")
+    (tmp_path / "test_crash.py").write_text("import os, signal\n\ndef test_crash():\n    os.kill(os.getpid(), signal.SIGSEGV)\n")
+    files = sorted(tmp_path.glob("test_*.py"))
+    assert run(files, ["-q", "-p", "no:faulthandler"], tmp_path) == 1
+    out = capsys.readouterr().out
+    assert "1 of 3 test files passed" in out
+    assert "test_crash.py: killed by SIGSEGV" in out and "test_bad.py: failed (pytest exit 1)" in out
+    assert run(files[-1:], ["-q"], tmp_path) == 0  # test_ok.py alone
