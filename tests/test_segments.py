@@ -87,3 +87,13 @@ def test_prepare_only_without_prepare_makes_nothing(tmp_path, capsys):
 def test_prepare_only_refuses_a_stability_study(capsys):
     assert ghsplat(["run", "experiments/stability.toml", "--prepare-only"]) == 2
     assert "not a stability study" in capsys.readouterr().err
+
+
+def test_only_prepares_just_the_segments_it_names(tmp_path):
+    """`ghsplat run --only row0_x0` makes no other segment's photos or SfM (each costs minutes)."""
+    _made_segment(tmp_path, "ok")
+    path = _write(tmp_path)
+    path.write_text(path.read_text() + '[[scenes]]\nname = "row0_x1"\ndata = "{0}/gh/row0_x1/sfm"\n'
+                    'segment = {{ row = 0, end = "x1" }}\n'.format(tmp_path))
+    assert prepare_segments(load_experiment(path), {"row0_x0"}) == {}
+    assert not (tmp_path / "gh" / "row0_x1").exists()

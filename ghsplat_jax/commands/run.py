@@ -75,7 +75,8 @@ def main(args) -> int:
         print("ghsplat run: --report-only and --prepare-only exclude each other", file=sys.stderr)
         return 2
     try:
-        unusable = {} if args.report_only else prepare_segments(exp)  # scenes whose data could not be made
+        only_scenes = {name.split("/")[0] for name in args.only} or None
+        unusable = {} if args.report_only else prepare_segments(exp, only_scenes)  # scenes whose data could not be made
     except ConfigError as exc:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2

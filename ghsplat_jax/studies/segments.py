@@ -145,9 +145,11 @@ def _round(value, digits: int):
     return None if value is None else round(float(value), digits)
 
 
-def prepare_segments(exp) -> dict[str, str]:
-    """Make every missing segment of the experiment (photos with exact cameras, then SfM),
-    write RESULTS/segments.{json,md} and return {scene: error} for segments not fit to train."""
+def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
+    """Make every missing segment of the experiment (photos with exact cameras, then SfM), or
+    only those of `scenes` (`ghsplat run --only`), write RESULTS/segments.{json,md} and return
+    {scene: error} for segments not fit to train. The report is rewritten only when it can list
+    every segment, so a partial preparation never drops the rows of segments it left alone."""
     prep = exp.spec.get("prepare")
     if not prep:
         return {}
@@ -155,9 +157,12 @@ def prepare_segments(exp) -> dict[str, str]:
         raise ConfigError(f"{exp.source}: [prepare] must be a table")
     capture, greenhouse, sfm_options = _options(prep, exp.source)
     world = None
-    rows, unusable, made = [], {}, False
+    rows, unusable, made, left = [], {}, False, []
     for seg in _segments(exp.spec, exp.source):
         report = _is_done(seg)
+        if report is None and scenes is not None and seg.scene not in scenes:
+            left.append(seg.scene)
+            continue
         if report is None:
             if world is None:
                 from ghsplat_jax.synth.scene import generate_scene
@@ -173,7 +178,10 @@ def prepare_segments(exp) -> dict[str, str]:
         if report.get("status") != "ok":
             unusable[seg.scene] = (f"SfM status {report.get('status')!r} (see {seg.sfm_dir / 'sfm_report.json'}); "
                                    "not trained, since a folded or partial model gives a wrong asset")
-    if rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the SfM runs' machine record
+    if left and made:
+        log.info("not made (outside --only): %s; %s lists every segment once they exist (--prepare-only)",
+                 ", ".join(left), exp.results / "segments.md")
+    elif rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the SfM runs' machine record
         _write_report(rows, exp.results, capture)
     return unusable
 
