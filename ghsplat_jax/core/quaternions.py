@@ -66,7 +66,7 @@ def rotation_planes(q: jnp.ndarray) -> tuple[list[list[jnp.ndarray]], jnp.ndarra
     """The rotation matrices of q (..., 4), normalised as `safe_normalize` does, as (...) planes
     R[i][j], and whether each q was valid. For code written on planes (`raster.project`): on
     XLA:CPU every slice of a (..., 3, 3) array becomes a full-size pad in the gradient."""
-    unit, valid = _unit_parts([q[..., i] for i in range(4)])
+    unit, valid = _unit_parts(list(jnp.moveaxis(q, -1, 0)))  # rows: a row's gradient is a cheap pad on XLA:CPU
     return _matrix_rows(*unit), valid
 
 

@@ -62,7 +62,11 @@ def _finite_rows(x: jax.Array) -> jax.Array:
 
 
 def _planes(x: jax.Array) -> list[jax.Array]:
-    return [x[:, i] for i in range(x.shape[1])]
+    """x's last axis as planes, taken as rows of its transpose: the gradient of a row is a pad
+    along the major axis, which XLA:CPU runs as a cheap loop. Columns x[:, i] gave pads along
+    the minor axis, fused with their cotangents' computation: four of them took 84 ms of a
+    Table 1 step's thread time (stop 38)."""
+    return list(jnp.moveaxis(x, -1, 0))
 
 
 def _stack(planes) -> jax.Array:
