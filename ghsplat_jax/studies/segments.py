@@ -178,9 +178,10 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
         if report.get("status") != "ok":
             unusable[seg.scene] = (f"SfM status {report.get('status')!r} (see {seg.sfm_dir / 'sfm_report.json'}); "
                                    "not trained, since a folded or partial model gives a wrong asset")
-    if left and made:
-        log.info("not made (outside --only): %s; %s lists every segment once they exist (--prepare-only)",
-                 ", ".join(left), exp.results / "segments.md")
+    if left:  # a partial report would drop the rows of the segments left alone
+        if made:
+            log.info("not made (outside --only): %s; %s lists every segment once they exist (--prepare-only)",
+                     ", ".join(left), exp.results / "segments.md")
     elif rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the SfM runs' machine record
         _write_report(rows, exp.results, capture)
     return unusable
