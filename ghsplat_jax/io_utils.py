@@ -86,6 +86,14 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     return Path(path)
 
 
+def device_name() -> str:
+    """The device JAX computes on, as results name it: "cpu", or the accelerator's kind (e.g.
+    "NVIDIA H200"), so a report can tell a GPU's training time from a CPU's."""
+    import jax
+
+    return str(jax.devices()[0].device_kind)
+
+
 def machine_info() -> dict:
     """What a result was measured on: recorded beside every benchmark and experiment report."""
     import platform
@@ -94,4 +102,4 @@ def machine_info() -> dict:
 
     return {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
             "python": platform.python_version(), "jax": jax.__version__, "jax_backend": jax.default_backend(),
-            "load_average": list(os.getloadavg())}
+            "device": device_name(), "load_average": list(os.getloadavg())}

@@ -181,6 +181,26 @@ def test_pareto_front_and_its_chart(tmp_path):
     assert [p.name for p in made] == ["pareto_s.png", "pareto.json"]
     front = json.loads(made[1].read_text())["scenes"]["s"]
     assert {v: f["on_front"] for v, f in front.items()} == {"default": True, "tile16": False, "box3": True}
+    # a GPU's step time beside a CPU's draws no front: the scene is left out, and says why
+    mixed = [dict(rows[0], device="NVIDIA H200"), dict(rows[1], device="cpu")]
+    made = write_pareto_charts(mixed, tmp_path / "mixed", "t")
+    assert [p.name for p in made] == ["pareto.json"]
+    assert "different devices (NVIDIA H200, cpu)" in json.loads(made[0].read_text())["scenes"]["s"]["left_out"]
+
+
+def test_rows_and_charts_name_an_accelerator(tmp_path):
+    from ghsplat_jax.eval.report import run_row
+    from ghsplat_jax.train.run_dir import write_metrics
+
+    write_metrics(tmp_path, {"test": {"psnr": 29.4, "l1": 0.02, "ssim": 0.9, "num_views": 8}, "num_gaussians": 5,
+                             "train_seconds": 515.0, "device": "NVIDIA H200"}, [])
+    row = dict(run_row(tmp_path, "row3_x1", "default"))
+    assert row["device"] == "NVIDIA H200"
+    cpu = dict(row, scene="row1_x1", device="cpu")
+    series = scatter_series([row, cpu], "train_seconds", "psnr")["default"]
+    assert series[0]["device"] == "NVIDIA H200" and "device" not in series[1]
+    labels = [t.get_text() for t in scatter_figure({"": series}, "s", "dB").axes[0].texts]
+    assert labels == ["row3_x1 (NVIDIA H200)", "row1_x1"]
 
 
 def test_median_step_seconds_skips_the_clock_restart_of_a_resume(tmp_path):

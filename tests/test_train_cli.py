@@ -89,6 +89,7 @@ def test_eval_of_a_stopped_run_writes_a_snapshot(data_dir, tmp_path, capsys):
     from ghsplat_jax.train.checkpoint import read_meta
 
     assert m["peak_rss_mb"] >= read_meta(out / "checkpoint.npz")["peak_rss_mb"] > 0  # training's peak counts
+    assert m["device"] == "cpu"  # the tests run on the CPU (conftest), and a report tells a GPU's times apart
     assert (snap / "renders" / "test").is_dir()
     assert not (out / "metrics.json").exists()  # the run still counts as unfinished
     # a folder that has not started training: a clear error naming it

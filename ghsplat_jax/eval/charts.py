@@ -18,11 +18,15 @@ CHARTS = (  # file stem, x key, y key, x label, y label
 
 
 def scatter_series(rows: list[dict], x: str, y: str) -> dict[str, list[dict]]:
-    """{variant: [{"scene", "x", "y"}, ...]} of the rows that have both values, variants sorted."""
+    """{variant: [{"scene", "x", "y"}, ...]} of the rows that have both values, variants sorted; a
+    run on an accelerator also names its "device", since its times are not a CPU's."""
     series: dict[str, list[dict]] = {}
     for r in rows:
         if r.get(x) is not None and r.get(y) is not None:
-            series.setdefault(r.get("variant") or "", []).append({"scene": r["scene"], "x": r[x], "y": r[y]})
+            point = {"scene": r["scene"], "x": r[x], "y": r[y]}
+            if r.get("device") not in (None, "cpu"):
+                point["device"] = r["device"]
+            series.setdefault(r.get("variant") or "", []).append(point)
     return dict(sorted(series.items()))
 
 
@@ -36,7 +40,8 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
         ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, color=f"C{i}", s=36,
                    zorder=3)
         for p in points:
-            ax.annotate(p["scene"], (p["x"], p["y"]), textcoords="offset points", xytext=(4, 3), fontsize=7)
+            label = f"{p['scene']} ({p['device']})" if "device" in p else p["scene"]
+            ax.annotate(label, (p["x"], p["y"]), textcoords="offset points", xytext=(4, 3), fontsize=7)
     if log_x:
         ax.set_xscale("log")
     ax.set_xlabel(xlabel)
@@ -72,9 +77,9 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
 
 def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "step_seconds",
                         quality: str = "psnr", reference: str = "default", stem: str = "pareto") -> list[Path]:
-    """Per scene with two or more variants: quality against cost, the Pareto front drawn and the
-    `reference` variant (the chosen defaults) ringed, in STEM_SCENE.png; STEM.json says which
-    variants are on it."""
+    """Per scene with two or more variants on one device: quality against cost, the Pareto front
+    drawn and the `reference` variant (the chosen defaults) ringed, in STEM_SCENE.png; STEM.json
+    says which variants are on it, and which scenes were left out for mixing devices."""
     from matplotlib.figure import Figure
 
     folder = Path(folder)
@@ -85,6 +90,10 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
     summary, made = {}, []
     for scene, runs in sorted(by_scene.items()):
         if len(runs) < 2:
+            continue
+        devices = sorted({str(r.get("device")) for r in runs})  # "None": a run from before metrics named it
+        if len(devices) > 1:  # a GPU's step time against a CPU's draws no front
+            summary[scene] = {"left_out": f"its runs ran on different devices ({', '.join(devices)})"}
             continue
         on_front = pareto_front([(r[cost], r[quality]) for r in runs])
         summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.eval.metrics import background_cover, image_metrics, summarize
+from ghsplat_jax.io_utils import device_name
 from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
@@ -109,6 +110,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
         "data": str(config.data),
         "peak_rss_mb": max(rd.peak_rss_mb(), train_peak_rss_mb or 0.0),
         "strategy": config.strategy,
+        "device": device_name(),  # where it trained and rendered (the timings above depend on it)
     }
     rd.write_metrics(out_dir, metrics, rows)
     return metrics

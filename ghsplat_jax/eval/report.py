@@ -16,7 +16,7 @@ PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (27
 
 RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
 RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds",
-                  "step_seconds", "steps", "render_seconds_per_view", "run_dir")
+                  "step_seconds", "steps", "render_seconds_per_view", "device", "run_dir")
 
 
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
@@ -32,7 +32,8 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
         "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
         "psnr": s.get("psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"), "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
-        "render_seconds_per_view": m.get("render_seconds_per_view"), "run_dir": str(run_dir),
+        "render_seconds_per_view": m.get("render_seconds_per_view"), "device": m.get("device"),
+        "run_dir": str(run_dir),
     }
 
 
@@ -113,11 +114,11 @@ def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
     cols = ("scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds", "step_seconds",
-            "steps", "render_seconds_per_view")
+            "steps", "render_seconds_per_view", "device")
     with atomic_write(md, "w") as fh:
         fh.write(f"# {title}\n\n" + markdown_table(rows, cols, ("scene", "variant", "split", "PSNR (dB)", "L1",
                                                                  "SSIM", "Gaussians", "train s", "median step s",
-                                                                 "steps", "render s/view")))
+                                                                 "steps", "render s/view", "device")))
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
     js = write_json(folder / RESULTS_NAME, {"title": title, "machine": machine_info(), "rows": rows})
