@@ -34,6 +34,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from run_progress import read_jsonl
+
+from ghsplat_jax.train.run_dir import is_evaluated
+
 TICK_S = 10.0
 PACK_EVERY_S = 60.0
 DECIDE_EVERY_S = 30.0
@@ -147,7 +151,7 @@ def pack(args) -> None:
 def write_status(args, runs: list[Run], events: list, machine: dict) -> None:
     state = [{"run": r.name, "step": r.step(), "paused": r.paused, "done": r.done,
               "returncode": r.proc.poll(), "rate": r.rate,
-              "finished": (r.folder / "metrics.json").is_file(),
+              "finished": is_evaluated(r.folder),
               "surfels": (last_stats(r.folder / "stats.jsonl") or {}).get("num_surfels")} for r in runs]
     tmp = Path(args.out) / ".status.json.tmp"
     tmp.write_text(json.dumps({"machine": machine, "runs": state, "events": events}, indent=1))
@@ -172,7 +176,7 @@ def machine_facts() -> dict:
 
 def rate_windows(stats: Path, window_s: float = 30.0) -> list[dict]:
     """Steps per second in consecutive windows of a run's training time, with its surfel count."""
-    rows = [json.loads(line) for line in stats.read_text().splitlines() if line.strip()]
+    rows = read_jsonl(stats)
     out, start = [], 0
     for i, row in enumerate(rows):
         if row["elapsed_s"] >= rows[start]["elapsed_s"] + window_s or i == len(rows) - 1:
@@ -241,7 +245,7 @@ def main() -> int:
             if r.proc.poll() is None:
                 continue
             r.done = True
-            ok = (r.folder / "metrics.json").is_file()
+            ok = is_evaluated(r.folder)
             note(f"{r.name} exited {r.proc.returncode} at step {r.step()} after {now - r.started:.0f} s"
                  f"{'' if ok else ' WITHOUT metrics.json'}")
             if ok and r.variant == "default" and not args.no_compact:
