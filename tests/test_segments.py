@@ -46,7 +46,8 @@ def test_prepare_settings_are_checked(tmp_path, extra, end, message):
 def _made_segment(tmp_path, status):
     sfm = tmp_path / "gh" / "row0_x0" / "sfm"
     (sfm / "sparse" / "0").mkdir(parents=True)
-    (sfm / "sfm_report.json").write_text(json.dumps({"status": status, "num_images": 12, "num_registered": 12}))
+    report = {"status": status, "num_images": 12, "num_registered": 12, "versions": {"pycolmap": "4.2.1"}}
+    (sfm / "sfm_report.json").write_text(json.dumps(report))
     return sfm
 
 
@@ -59,6 +60,8 @@ def test_prepare_only_makes_data_and_trains_nothing(tmp_path, capsys, status, co
     out, err = capsys.readouterr()
     assert f"| row0_x0 | {status} | 12 | 12 |" in (tmp_path / "runs" / "segments.md").read_text()
     assert "data made; report: " in out
+    [row] = json.loads((tmp_path / "runs" / "segments.json").read_text())["segments"]
+    assert row["pycolmap"] == "4.2.1"  # which install made the SfM
     assert ("row0_x0: SfM status 'folded'" in err) == (status == "folded")
     assert not (tmp_path / "runs" / "row0_x0").exists()
     assert ghsplat(["run", str(_write(tmp_path)), "--prepare-only", "--report-only"]) == 2

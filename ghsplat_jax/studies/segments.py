@@ -138,7 +138,8 @@ def _row(seg: Segment, report: dict) -> dict:
             "reprojection_px": _round(report.get("mean_reprojection_error_px"), 3),
             "centre_error_max_pct_extent": _round(100 * acc["centre_error_max_rel"] if acc else None, 3),
             "rotation_error_max_deg": _round(acc.get("rotation_error_max_deg"), 3),
-            "sfm_seconds": _round((report.get("timings_s") or {}).get("total"), 1), "data": str(seg.sfm_dir)}
+            "sfm_seconds": _round((report.get("timings_s") or {}).get("total"), 1), "data": str(seg.sfm_dir),
+            "pycolmap": (report.get("versions") or {}).get("pycolmap")}  # SfM results differ across installs
 
 
 def _round(value, digits: int):
