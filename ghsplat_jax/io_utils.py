@@ -100,6 +100,28 @@ def machine_info() -> dict:
 
     import jax
 
-    return {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-            "python": platform.python_version(), "jax": jax.__version__, "jax_backend": jax.default_backend(),
-            "device": device_name(), "load_average": list(os.getloadavg())}
+    return {"platform": platform.platform(), "processor": platform.processor() or _cpu_model(),
+            "cpu_simd": _cpu_simd(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "jax": jax.__version__, "jax_backend": jax.default_backend(), "device": device_name(),
+            "load_average": list(os.getloadavg())}
+
+
+def _cpuinfo_field(name: str) -> str:
+    """A field of the first CPU in /proc/cpuinfo ("" where there is none, e.g. off Linux)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return ""
+    return next((line.split(":", 1)[1].strip() for line in lines if line.split(":", 1)[0].strip() == name), "")
+
+
+def _cpu_model() -> str:
+    return _cpuinfo_field("model name")  # platform.processor() is empty on Linux
+
+
+def _cpu_simd() -> list[str]:
+    """The vector extensions the CPU offers: numerical libraries pick their code paths by them, so
+    float results (SIFT, SfM) can differ between machines with the same packages."""
+    flags = set(_cpuinfo_field("flags").split())
+    return sorted(flags & {"sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx512_bf16",
+                           "amx_tile"})

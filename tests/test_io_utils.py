@@ -1,10 +1,13 @@
-"""Atomic writes: a reader sees the old output or the new one, and a failure leaves nothing behind."""
+"""I/O helpers: atomic writes (a reader sees the old output or the new one, and a failure leaves nothing
+behind) and the machine record beside every result."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
-from ghsplat_jax.io_utils import atomic_path, atomic_write
+from ghsplat_jax.io_utils import atomic_path, atomic_write, machine_info
 
 
 def test_atomic_write_replaces_a_file_only_on_success(tmp_path):
@@ -33,3 +36,11 @@ def test_atomic_path_writes_and_replaces_folders(tmp_path):
         with atomic_path(tmp_path / "never"):
             pass
     assert [p.name for p in tmp_path.iterdir()] == ["model"]
+
+
+@pytest.mark.skipif(not Path("/proc/cpuinfo").is_file(), reason="no /proc/cpuinfo (not Linux)")
+def test_machine_info_names_the_cpu_on_linux():
+    # platform.processor() is empty on Linux; a result must still say which CPU (and vector units) made it.
+    info = machine_info()
+    assert info["processor"].strip()
+    assert isinstance(info["cpu_simd"], list) and all(isinstance(f, str) for f in info["cpu_simd"])

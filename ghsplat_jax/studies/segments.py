@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from ghsplat_jax.config_values import coerce
-from ghsplat_jax.io_utils import write_json
+from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
 from ghsplat_jax.train.config import ConfigError
 
 log = logging.getLogger("ghsplat.segments")
@@ -127,6 +127,7 @@ def _make(seg: Segment, world, capture: Capture, sfm_options) -> dict:
     if (seg.sfm_dir / "sparse" / "0").is_dir():
         report["accuracy"] = compare_model_dirs(seg.sfm_dir / "sparse" / "0", seg.photos_dir / "sparse" / "0")
     report["synth_seconds"] = synth_s
+    report["machine"] = machine_info()  # the same pycolmap has given different models on different machines
     write_json(seg.sfm_dir / "sfm_report.json", report)
     return report
 
@@ -190,7 +191,6 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
 
 def _write_report(rows: list[dict], folder: Path, capture: Capture) -> None:
     from ghsplat_jax.eval.report import markdown_table
-    from ghsplat_jax.io_utils import atomic_write, machine_info
 
     write_json(folder / "segments.json", {"capture": dataclasses.asdict(capture), "machine": machine_info(),
                                           "segments": rows})
