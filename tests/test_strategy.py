@@ -209,9 +209,14 @@ def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_p
     with pytest.raises(ConfigError, match="s/mcmc_20: count_fraction = 0.2 of variant 'default', which has not finished"):
         resolve_count(run, exp.runs)
     assert "has not finished" in run_one(run, exp.runs)  # the runner reports it as that run's failure
-    ref.out_dir.mkdir(parents=True)
+    # The reference's folder lost between sessions: its final count comes from the last report.
+    reported = {("s", "default"): 10000}
+    assert resolve_count(run, exp.runs, reported).config.max_surfels == 2000
+    ref.out_dir.mkdir(parents=True)  # a folder without metrics.json is a run in progress, not a lost one
+    with pytest.raises(ConfigError, match="which has not finished"):
+        resolve_count(run, exp.runs, reported)
     (ref.out_dir / "metrics.json").write_text(json.dumps({"num_gaussians": 12345}))
-    assert resolve_count(run, exp.runs).config.max_surfels == 2469
+    assert resolve_count(run, exp.runs, reported).config.max_surfels == 2469  # the run's own count comes first
     f.write_text(EXPERIMENT.format(out=tmp_path / "runs").replace('strategy = "mcmc"', 'strategy = "default"'))
     with pytest.raises(ConfigError, match="caps the count"):
         load_experiment(f)
@@ -219,6 +224,24 @@ def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_p
                                                                   'count_of = "other"'))
     with pytest.raises(ConfigError, match="count_of names 'other'"):
         load_experiment(f)
+
+
+def test_runner_takes_a_lost_references_count_from_the_report(tmp_path, monkeypatch):
+    # `ghsplat run --only s/mcmc_20` in a later session whose runs folder is gone: the default's
+    # row survives in results.json, so the compact run starts with its cap instead of failing.
+    from ghsplat_jax.eval import runner
+
+    f = tmp_path / "frac.toml"
+    f.write_text(EXPERIMENT.format(out=tmp_path / "runs"))
+    exp = runner.load_experiment(f)
+    exp.results.mkdir(parents=True, exist_ok=True)
+    (exp.results / "results.json").write_text(json.dumps({"rows": [{"scene": "s", "variant": "default",
+                                                                      "num_gaussians": 10000}]}))
+    caps = []
+    monkeypatch.setattr(runner, "train_and_evaluate", lambda config, out_dir, resume: caps.append(config.max_surfels))
+    monkeypatch.setattr(runner, "collect", lambda exp: ([], []))
+    assert runner.run_experiment(exp, only={"s/mcmc_20"})["failed"] == []
+    assert caps == [2000]
 
 
 def test_compactness_report_states_the_goal_check(tmp_path):

@@ -201,21 +201,28 @@ def _count_fraction(variant: dict, vname: str, variants: list, cfg: TrainConfig,
     return float(f), str(of)
 
 
-def resolve_count(run: PlannedRun, runs: list[PlannedRun]) -> PlannedRun:
+def resolve_count(run: PlannedRun, runs: list[PlannedRun], reported: dict | None = None) -> PlannedRun:
     """`run` with max_surfels = round(count_fraction x the final count of the same scene's
-    count_of run); ConfigError when that run has not finished."""
+    count_of run); ConfigError when that run has not finished. `reported`: {(scene, variant):
+    final count} from the experiment's last report, used when the reference's run folder is gone
+    (a long experiment's runs folder lost between sessions; collect() keeps its row too)."""
     from ghsplat_jax.train.run_dir import METRICS_NAME, read_metrics
 
     if run.count_fraction is None:
         return run
     ref = next((r for r in runs if r.scene == run.scene and r.variant == run.count_of), None)
-    metrics = read_metrics(ref.out_dir) if ref is not None else None
-    if not metrics or not metrics.get("num_gaussians"):
+    count = (read_metrics(ref.out_dir) or {}).get("num_gaussians") if ref is not None else None
+    lost = ref is not None and not ref.out_dir.exists()  # a folder without metrics is a run not finished
+    if not count and lost and (reported or {}).get((run.scene, run.count_of)):
+        count = reported[(run.scene, run.count_of)]
+        log.warning("%s/%s: the folder of %s/%s (%s) is gone; its final count %d is taken from the experiment's "
+                    "report", run.scene, run.variant, run.scene, run.count_of, ref.out_dir, count)
+    if not count:
         where = ref.out_dir / METRICS_NAME if ref is not None else f"{run.scene}/{run.count_of}"
         raise ConfigError(f"{run.scene}/{run.variant}: count_fraction = {run.count_fraction} of variant "
                           f"{run.count_of!r}, which has not finished ({where} missing); run "
                           f"{run.scene}/{run.count_of} first")
-    cap = max(1, int(round(run.count_fraction * int(metrics["num_gaussians"]))))
+    cap = max(1, int(round(run.count_fraction * int(count))))
     return dataclasses.replace(run, config=run.config.replace(max_surfels=cap))
 
 
@@ -241,16 +248,16 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
 
 
-def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None) -> str | None:
+def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported: dict | None = None) -> str | None:
     """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
     when interrupted. Returns None, or the error text (one broken scene must not stop the set).
     The executors (local, Ray) both call this, so a run behaves the same wherever it runs.
-    `all_runs`: the experiment's runs, where a count_fraction run finds its reference."""
+    `all_runs` and `reported`: where a count_fraction run finds its reference (resolve_count)."""
     if run.finished:
         log.info("%s/%s: finished, skipped", run.scene, run.variant)
         return None
     try:
-        run = resolve_count(run, all_runs or [])
+        run = resolve_count(run, all_runs or [], reported)
         log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir, run.config.strategy,
                  f", max_surfels {run.config.max_surfels}" if run.count_fraction else "")
         train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
@@ -264,10 +271,10 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None) -> str | 
     return None
 
 
-def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None) -> list[tuple[str, str]]:
+def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None, reported=None) -> list[tuple[str, str]]:
     failed = []
     for r in runs:
-        msg = run_one(r, all_runs)
+        msg = run_one(r, all_runs, reported)
         if msg is not None:
             failed.append((f"{r.scene}/{r.variant}", msg))
             if stop_on_error:
@@ -291,18 +298,23 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     if executor not in ("local", "ray"):
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
     # Two waves: runs with a count_fraction need their reference's final count.
+    from ghsplat_jax.eval.report import RESULTS_NAME
+
+    reported = {key: row["num_gaussians"] for key, row in _earlier_rows(Path(exp.results) / RESULTS_NAME).items()
+                if row.get("num_gaussians")}
     failed = []
     for wave in ([r for r in todo if r.count_fraction is None], [r for r in todo if r.count_fraction is not None]):
         if not wave or (failed and stop_on_error):
             continue
         if executor == "local":
-            failed += _run_locally(wave, stop_on_error, exp.runs)
+            failed += _run_locally(wave, stop_on_error, exp.runs, reported)
         else:
             import functools
 
             from ghsplat_jax.eval.ray_executor import run_on_ray
 
-            failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs), stop_on_error=stop_on_error,
+            failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs, reported=reported),
+                                 stop_on_error=stop_on_error,
                                  **(ray_options or {}))
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
