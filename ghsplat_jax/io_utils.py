@@ -100,7 +100,7 @@ def machine_info() -> dict:
 
     import jax
 
-    return {"platform": platform.platform(), "processor": platform.processor() or _cpu_model(),
+    return {"platform": platform.platform(), "processor": platform.processor() or _cpu_model() or platform.machine(),
             "cpu_simd": _cpu_simd(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
             "jax": jax.__version__, "jax_backend": jax.default_backend(), "device": device_name(),
             "load_average": list(os.getloadavg())}
@@ -122,6 +122,6 @@ def _cpu_model() -> str:
 def _cpu_simd() -> list[str]:
     """The vector extensions the CPU offers: numerical libraries pick their code paths by them, so
     float results (SIFT, SfM) can differ between machines with the same packages."""
-    flags = set(_cpuinfo_field("flags").split())
+    flags = set((_cpuinfo_field("flags") or _cpuinfo_field("Features")).split())  # x86 names them flags, Arm Features
     return sorted(flags & {"sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx512_bf16",
-                           "amx_tile"})
+                           "amx_tile", "asimd", "sve", "sve2"})
