@@ -314,8 +314,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
             from ghsplat_jax.eval.ray_executor import run_on_ray
 
             failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs, reported=reported),
-                                 stop_on_error=stop_on_error,
-                                 **(ray_options or {}))
+                                 stop_on_error=stop_on_error, **(ray_options or {}))
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
 
