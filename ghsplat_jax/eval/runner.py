@@ -17,7 +17,8 @@ Experiment file layout (see experiments/*.toml):
     [[variants]]                   # a capped strategy at a fraction of another variant's final count:
     name = "mcmc_20"               # max_surfels = round(0.2 x the scene's `default` run's num_gaussians),
     count_fraction = 0.2           # resolved when it runs (that run goes first; an error if it has not
-    count_of = "default"           # finished); count_of defaults to "default"
+    count_of = "default"           # finished; its row in results.json if its folder is gone);
+                                   # count_of defaults to "default"
     train = { strategy = "mcmc" }
     reports = ["compactness"]      # extra reports (eval/compactness.py) beside results / table1 / charts
     [presets.quick]                # `--preset quick`; the file itself is the "full" preset
