@@ -129,7 +129,7 @@ def main(argv=None) -> int:
         if not args.no_budget:
             cap = max(int(default["num_gaussians"] * args.budget_fraction), 1)
             budget = run_training(name, data, overrides, args.steps, runs / f"budget_{cap}",
-                                  dict(extra, strategy="budget", max_surfels=cap), args.until)
+                                  dict(extra, strategy={"name": "budget", "max_surfels": cap}), args.until)
             result["budget"] = summary(budget) | {"max_surfels": cap, "fraction_of_default": args.budget_fraction}
             result["budget_minus_default_psnr"] = budget["test"]["psnr"] - default["test"]["psnr"]
         suffix = "" if args.steps >= 30_000 and args.until is None else (

@@ -1,4 +1,4 @@
-"""Densification strategies as objects (train/strategy.py): invariants of each strategy, the
+"""Densification strategies as objects (train/strategies/): invariants of each strategy, the
 contribution-pruning pass, the trainer calling hooks of any registered strategy, resume of a
 strategy's state, count_fraction variants of the experiment runner and the compactness report."""
 
@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ghsplat_jax.train import optim, strategy as strat, trainer
+from ghsplat_jax.train import optim, strategies as strat, trainer
+from ghsplat_jax.train.strategies import mcmc as strat_mcmc
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.state import new_state, pad_params
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
@@ -70,7 +71,7 @@ def test_mcmc_round_relocates_only_dead_surfels_and_keeps_the_count_at_the_cap()
     dead[[3, 10, 11, 40]] = True
     logits = np.where(dead, -8.0, np.asarray(s.params.opacity_logits))
     s = dataclasses.replace(s, params=dataclasses.replace(s.params, opacity_logits=jnp.asarray(logits)))
-    new, counts = strat.mcmc_round_jit(s, jax.random.PRNGKey(0), jnp.int32(64), min_opacity=0.005, grow_rate=0.05)
+    new, counts = strat_mcmc.mcmc_round_jit(s, jax.random.PRNGKey(0), jnp.int32(64), min_opacity=0.005, grow_rate=0.05)
     assert int(counts["relocated"]) == 4 and int(counts["added"]) == 0
     assert int(jnp.sum(new.active)) == 64  # fixed count at the cap
     moved = np.any(np.asarray(new.params.means) != np.asarray(s.params.means), axis=1)
@@ -87,11 +88,11 @@ def test_mcmc_round_relocates_only_dead_surfels_and_keeps_the_count_at_the_cap()
 
 def test_mcmc_growth_fills_free_slots_up_to_the_cap_and_noise_moves_only_live_means():
     s = small_state(n=40, cap=64)
-    new, counts = strat.mcmc_round_jit(s, jax.random.PRNGKey(1), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
+    new, counts = strat_mcmc.mcmc_round_jit(s, jax.random.PRNGKey(1), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
     assert int(counts["added"]) == 10 and int(jnp.sum(new.active)) == 50
-    new2, _ = strat.mcmc_round_jit(new, jax.random.PRNGKey(2), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
+    new2, _ = strat_mcmc.mcmc_round_jit(new, jax.random.PRNGKey(2), jnp.int32(50), min_opacity=0.005, grow_rate=0.5)
     assert int(jnp.sum(new2.active)) == 50  # never past the cap
-    noisy = strat.mcmc_noise_jit(new2, jax.random.PRNGKey(3), jnp.float32(1e3))
+    noisy = strat_mcmc.mcmc_noise_jit(new2, jax.random.PRNGKey(3), jnp.float32(1e3))
     moved = np.any(np.asarray(noisy.params.means) != np.asarray(new2.params.means), axis=1)
     assert not moved[~np.asarray(new2.active)].any() and moved[np.asarray(new2.active)].any()
 
@@ -121,18 +122,46 @@ def test_contribution_weights_sum_to_the_rendered_alpha_and_pruning_uses_the_thr
 def test_config_validation_names_the_setting():
     with pytest.raises(ConfigError, match="strategy must be one of .*mcmc"):
         TrainConfig(strategy="nonesuch")
-    with pytest.raises(ConfigError, match="mcmc_min_opacity"):
-        TrainConfig(strategy="mcmc", mcmc_min_opacity=0.0)
+    with pytest.raises(ConfigError, match="min_opacity"):
+        TrainConfig(strategy={"name": "mcmc", "min_opacity": 0.0})
+    with pytest.raises(ConfigError, match="strategy 'default' has no setting 'max_surfels'"):
+        TrainConfig().replace(**{"strategy.max_surfels": 10})
     with pytest.raises(ConfigError, match="lambda_scale_reg"):
         TrainConfig(lambda_scale_reg=-0.5)
     with pytest.raises(ConfigError, match="contrib_prune"):
-        TrainConfig(contrib_prune_threshold=-1)
+        TrainConfig(strategy={"name": "default", "contrib_prune_threshold": -1})
     assert strat.loss_weight(TrainConfig(strategy="mcmc"), "lambda_opacity_reg") == 0.01
     assert strat.loss_weight(TrainConfig(), "lambda_opacity_reg") == 0.0
-    assert TrainConfig(steps=3000, contrib_prune_every=3000, scale_schedule=True).resolved().contrib_prune_every == 300
+    scaled = TrainConfig(steps=3000, strategy={"name": "default", "contrib_prune_every": 3000}, scale_schedule=True)
+    assert scaled.resolved().strategy.contrib_prune_every == 300
 
 
-@strat.register("test_counting")
+def test_old_flat_strategy_settings_load_with_a_warning(caplog):
+    cfg = TrainConfig().replace(strategy="mcmc", mcmc_grow_rate=0.2, max_surfels=300)
+    assert cfg.strategy == strat.MCMCSettings(max_surfels=300, grow_rate=0.2)
+    assert "deprecated" in caplog.text and "mcmc_grow_rate -> strategy.grow_rate" in caplog.text
+    # A saved config of old wrote every flat field at its default, whatever its strategy.
+    assert TrainConfig().replace(budget_schedule="linear", mcmc_noise_lr=5e5).strategy == strat.DefaultSettings()
+    with pytest.raises(ConfigError, match="mcmc_grow_rate.*no meaning for strategy 'default'"):
+        TrainConfig().replace(mcmc_grow_rate=0.3)
+
+
+def test_strategy_table_round_trips_through_the_saved_config(tmp_path):
+    from ghsplat_jax.train.config import load_config, save_config
+
+    cfg = TrainConfig().replace(recipe="auto", **{"strategy.min_gain_db": 0.25})
+    assert cfg.strategy.name == "auto" and cfg.val_every > 0
+    save_config(cfg, tmp_path / "c.toml")
+    assert "[strategy]" in (tmp_path / "c.toml").read_text()
+    assert load_config(tmp_path / "c.toml") == cfg
+
+
+@dataclasses.dataclass(frozen=True)
+class CountingSettings(strat.StrategySettings):
+    """No settings of its own."""
+
+
+@strat.register("test_counting", CountingSettings)
 @dataclasses.dataclass(frozen=True)
 class CountingStrategy(strat.Strategy):
     """A strategy only a test knows: counts its hook calls in its state."""
@@ -157,9 +186,9 @@ def test_trainer_has_no_strategy_branches_and_runs_a_registered_strategy(tmp_pat
 
 
 def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
-    for name, extra in (("mcmc", dict(mcmc_grow_rate=0.5)), ("budget", dict(densify_grad_threshold=1e-8))):
+    for name, extra in (("mcmc", {"strategy.grow_rate": 0.5}), ("budget", dict(densify_grad_threshold=1e-8))):
         out = tmp_path / name
-        res = train(CONFIG.replace(strategy=name, max_surfels=150, **extra), out, dataset=dataset())
+        res = train(CONFIG.replace(strategy=name, **{"strategy.max_surfels": 150}, **extra), out, dataset=dataset())
         counts = [json.loads(x)["num_surfels"] for x in (out / "stats.jsonl").read_text().splitlines()]
         assert max(counts) <= 150 and res.state.capacity == 150
         for leaf in jax.tree_util.tree_leaves(res.state.params):
@@ -169,8 +198,8 @@ def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
 
 
 def test_resume_restores_the_strategy_state(tmp_path):
-    cfg = CONFIG.replace(strategy="mcmc", max_surfels=250, mcmc_grow_rate=0.2, contrib_prune_every=8,
-                         contrib_prune_threshold=0.05)
+    cfg = CONFIG.replace(strategy=dict(name="mcmc", max_surfels=250, grow_rate=0.2, contrib_prune_every=8,
+                                       contrib_prune_threshold=0.05))
     full = train(cfg, tmp_path / "full", dataset=dataset())
     train(cfg, tmp_path / "part", dataset=dataset(), until=10)
     done = train(cfg, tmp_path / "part", dataset=dataset(), resume=True)
@@ -211,12 +240,12 @@ def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_p
     assert "has not finished" in run_one(run, exp.runs)  # the runner reports it as that run's failure
     # The reference's folder lost between sessions: its final count comes from the last report.
     reported = {("s", "default"): 10000}
-    assert resolve_count(run, exp.runs, reported).config.max_surfels == 2000
+    assert resolve_count(run, exp.runs, reported).config.strategy.max_surfels == 2000
     ref.out_dir.mkdir(parents=True)  # a folder without metrics.json is a run in progress, not a lost one
     with pytest.raises(ConfigError, match="which has not finished"):
         resolve_count(run, exp.runs, reported)
     (ref.out_dir / "metrics.json").write_text(json.dumps({"num_gaussians": 12345}))
-    assert resolve_count(run, exp.runs, reported).config.max_surfels == 2469  # the run's own count comes first
+    assert resolve_count(run, exp.runs, reported).config.strategy.max_surfels == 2469  # the run's own count comes first
     f.write_text(EXPERIMENT.format(out=tmp_path / "runs").replace('strategy = "mcmc"', 'strategy = "default"'))
     with pytest.raises(ConfigError, match="caps the count"):
         load_experiment(f)
@@ -238,7 +267,7 @@ def test_runner_takes_a_lost_references_count_from_the_report(tmp_path, monkeypa
     (exp.results / "results.json").write_text(json.dumps({"rows": [{"scene": "s", "variant": "default",
                                                                       "num_gaussians": 10000}]}))
     caps = []
-    monkeypatch.setattr(runner, "train_and_evaluate", lambda config, out_dir, resume: caps.append(config.max_surfels))
+    monkeypatch.setattr(runner, "train_and_evaluate", lambda config, out_dir, resume: caps.append(config.strategy.max_surfels))
     monkeypatch.setattr(runner, "collect", lambda exp: ([], []))
     assert runner.run_experiment(exp, only={"s/mcmc_20"})["failed"] == []
     assert caps == [2000]

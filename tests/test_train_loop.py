@@ -81,7 +81,7 @@ def test_budget_count_follows_the_cap_schedule(tmp_path):
     schedule's allowance (linear from the initial count to the cap), and by exactly that
     when there are more candidates than room: the cap is followed, not just not exceeded."""
     out = tmp_path / "budget"
-    cfg = CONFIG.replace(strategy="budget", max_surfels=400, densify_grad_threshold=1e-8)  # all seen are candidates
+    cfg = CONFIG.replace(strategy={"name": "budget", "max_surfels": 400}, densify_grad_threshold=1e-8)  # all seen are candidates
     result = train(cfg, out, dataset=dataset())
     meta = read_meta(out / CHECKPOINT_NAME)
     initial, cap = meta["initial_count"], meta["max_surfels"]
@@ -91,7 +91,7 @@ def test_budget_count_follows_the_cap_schedule(tmp_path):
     prev, filled, targets = initial, 0, []
     for s in stats:
         if "candidates" in s:  # a densification round after iteration s["step"]
-            target = densify.budget_target(cfg, s["step"], initial, cap)
+            target = densify.budget_target(cfg, cfg.strategy.schedule, s["step"], initial, cap)
             targets.append(target)
             grown = prev + s["cloned"] + s["split"]
             assert grown <= target, s
@@ -295,7 +295,7 @@ def test_compiled_step_follows_every_setting_of_its_config():
     assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
 
 
-@pytest.mark.parametrize("extra", [dict(), dict(strategy="mcmc", max_surfels=100)], ids=["default", "mcmc"])
+@pytest.mark.parametrize("extra", [dict(), dict(strategy={"name": "mcmc", "max_surfels": 100})], ids=["default", "mcmc"])
 def test_parted_step_matches_the_one_program_step(extra):
     """The step whose compositor runs in two threads (`parted_step`) computes what the single
     program does: the same loss and metrics, and updates equal to float32 rounding (the parts'
@@ -335,7 +335,7 @@ def test_compacted_pool_steps_like_the_full_one_and_densification_end_compacts()
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import compact, new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
-    from ghsplat_jax.train.strategy import make_strategy
+    from ghsplat_jax.train.strategies import make_strategy
     from ghsplat_jax.train.trainer import step_raster_config
     from raster_scenes import random_scene
 

@@ -145,7 +145,7 @@ def test_config_overrides_save_and_errors(tmp_path):
     p = tmp_path / "exp.toml"
     p.write_text('steps = 500\nstrategy = "budget"\nbackground = [1, 1, 1]\n')
     cfg = load_config(p)
-    assert cfg.steps == 500 and cfg.strategy == "budget" and cfg.raster.background == (1.0, 1.0, 1.0)
+    assert cfg.steps == 500 and cfg.strategy.name == "budget" and cfg.raster.background == (1.0, 1.0, 1.0)
     save_config(cfg, tmp_path / "config.toml")
     assert load_config(tmp_path / "config.toml") == cfg
     p.write_text("stepz = 3\n")
@@ -277,9 +277,10 @@ def test_opacity_reset_and_budget_schedule():
     assert np.all(np.asarray(new.opt_state["opacity_logits"][0].mu) == 0)
     assert np.all(np.asarray(new.opt_state["means"][0].mu)[:4] == 1)
     cfg = TrainConfig(strategy="budget", densify_from=500, densify_until=1500)
-    assert densify.budget_target(cfg, 500, 100, 1100) == 100
-    assert densify.budget_target(cfg, 1000, 100, 1100) == 600
-    assert densify.budget_target(cfg, 5000, 100, 1100) == 1100
+    assert densify.budget_target(cfg, "linear", 500, 100, 1100) == 100
+    assert densify.budget_target(cfg, "linear", 1000, 100, 1100) == 600
+    assert densify.budget_target(cfg, "linear", 5000, 100, 1100) == 1100
+    assert densify.budget_target(cfg, "immediate", 500, 100, 1100) == 1100
 
 
 def test_random_init_box_is_where_the_cameras_look():
@@ -360,7 +361,7 @@ def test_opacity_reset_recovery_window():
 
 
 def test_no_opacity_reset_where_the_run_cannot_recover():
-    from ghsplat_jax.train.strategy import is_opacity_reset, last_reset_before
+    from ghsplat_jax.train.strategies import is_opacity_reset, last_reset_before
 
     ends_on_reset = TrainConfig(steps=3000)
     assert not is_opacity_reset(ends_on_reset, 3000) and last_reset_before(ends_on_reset, 3001) is None
@@ -444,7 +445,7 @@ def test_pool_growth_follows_the_backend(monkeypatch):
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
-    from ghsplat_jax.train.strategy import make_strategy
+    from ghsplat_jax.train.strategies import make_strategy
     from raster_scenes import random_scene
 
     optimizers, _ = make_train_step(TrainConfig())

@@ -59,7 +59,7 @@ def main(args) -> int:
         for r in exp.runs:
             state = "finished" if r.finished else ("interrupted" if has_checkpoint(r.out_dir) else "todo")
             print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
-                  f"strategy={r.config.strategy})")
+                  f"strategy={r.config.strategy.name})")
         return 0
     if args.executor != "ray" and (args.address or args.cpus_per_run or args.gpus_per_run):
         print("ghsplat run: --address, --cpus-per-run and --gpus-per-run need --executor ray", file=sys.stderr)

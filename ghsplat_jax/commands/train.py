@@ -8,17 +8,22 @@ import logging
 import sys
 from pathlib import Path
 
-HELP = "train 2D Gaussian surfels on a dataset (2DGS defaults; --config FILE.toml overrides)"
+HELP = "train 2D Gaussian surfels on a dataset (2DGS defaults; --recipe auto sizes the model and stops by itself)"
+RECIPE_HELP = ("'auto': the model sizes itself and the run stops when held-out views stop improving, with images at "
+               "reduced resolution early: use it for a new scene or to get a good model fast. Without --recipe: the "
+               "2DGS defaults for a fixed 30k steps, the paper's Table 1 protocol: use it to reproduce published "
+               "numbers")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="dataset folder (COLMAP, transforms.json or LLFF; a bare name is looked up "
                                   "under the shared datasets root)")
     p.add_argument("--out", required=True, help="run folder (config, stats, checkpoints, point_cloud.ply, metrics)")
+    p.add_argument("--recipe", metavar="NAME", help=RECIPE_HELP)
     p.add_argument("--config", help="TOML (or JSON) file of TrainConfig overrides")
     p.add_argument("--steps", type=int, help="optimisation steps (default 30000)")
     p.add_argument("--downscale", type=float, help="image downscale factor")
-    p.add_argument("--strategy", help="densification strategy: default, budget or mcmc (train/strategy.py); "
+    p.add_argument("--strategy", help="densification strategy: default, budget, mcmc or auto (train/strategies/); "
                                       "an unknown name is a config error that lists them")
     p.add_argument("--max-surfels", type=int, help="cap on the surfel count for --strategy budget or mcmc")
     p.add_argument("--seed", type=int)
@@ -38,6 +43,8 @@ def resolve_config(args):
 
     out = Path(args.out)
     config, missing = TrainConfig(), []
+    if args.recipe:  # under the config file and the other options
+        config = apply_overrides(config, {"recipe": args.recipe}, "--recipe")
     if args.resume and (out / CONFIG_NAME).is_file():
         config = load_config(out / CONFIG_NAME)
         missing = settings_missing_from(out / CONFIG_NAME)
@@ -58,7 +65,7 @@ def resolve_config(args):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
     if args.max_surfels is not None:
-        overrides["max_surfels"] = args.max_surfels
+        overrides["strategy.max_surfels"] = args.max_surfels
     if args.white:
         overrides["background"] = (1.0, 1.0, 1.0)
     if args.no_progress:
@@ -86,9 +93,13 @@ def main(args) -> int:
     except ValueError as exc:  # DatasetError and bad inputs are ValueErrors with a clear message
         print(f"ghsplat train: {exc}", file=sys.stderr)
         return 2
-    if metrics["steps"] < config.resolved().steps:
-        print(f"{args.out}: stopped at step {metrics['steps']} of {config.steps}; continue with --resume")
+    if not metrics["finished"]:
+        print(f"{args.out}: paused at step {metrics['steps']} of {config.steps}; continue with --resume")
         return 0
+    stop = metrics.get("stop")
+    if stop:
+        print(f"{args.out}: stopped at step {stop['stopped_at']}: {stop['reason']}; kept the model of step "
+              f"{stop['best_step']} (validation PSNR {stop['best_val_psnr']:.2f} dB)")
     test = metrics.get("test") or {}
     psnr = test.get("psnr")
     print(f"{args.out}: {metrics['num_gaussians']} surfels, {metrics['steps']} steps, "

@@ -62,10 +62,11 @@ def save_view_maps(folder: Path, name: str, out) -> None:
 
 def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = None, steps: int | None = None,
              save_renders: bool | None = None, progress: bool | None = None,
-             train_peak_rss_mb: float | None = None) -> dict:
+             train_peak_rss_mb: float | None = None, extra: dict | None = None) -> dict:
     """Render every test view and (up to config.eval_max_train_views) training view; write
     OUT/metrics.json and OUT/per_view.json (and renders under OUT/renders/test/); return metrics.
-    peak_rss_mb is this process's peak, or the training process's when that was larger."""
+    peak_rss_mb is this process's peak, or the training process's when that was larger.
+    `extra`: more facts of the run for metrics.json (e.g. why a self-stopping run stopped)."""
     import jax
     from tqdm.auto import tqdm
 
@@ -109,9 +110,11 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
                        if dataset.train else None),
         "data": str(config.data),
         "peak_rss_mb": max(rd.peak_rss_mb(), train_peak_rss_mb or 0.0),
-        "strategy": config.strategy,
+        "strategy": config.strategy.name,
+        "recipe": config.recipe,
         "device": device_name(),  # where it trained and rendered (the timings above depend on it)
     }
+    metrics.update(extra or {})
     rd.write_metrics(out_dir, metrics, rows)
     return metrics
 

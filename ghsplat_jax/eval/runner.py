@@ -181,7 +181,7 @@ REPORTS = ("compactness",)
 
 def _count_fraction(variant: dict, vname: str, variants: list, cfg: TrainConfig, path) -> tuple[float | None, str]:
     """The variant's validated (count_fraction, count_of)."""
-    from ghsplat_jax.train.strategy import strategy_class
+    from ghsplat_jax.train.strategies import strategy_class
 
     of = variant.get("count_of", "default")
     if "count_fraction" not in variant:
@@ -191,9 +191,9 @@ def _count_fraction(variant: dict, vname: str, variants: list, cfg: TrainConfig,
     f = variant["count_fraction"]
     if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f:
         raise ConfigError(f"{path}: variant {vname!r}: count_fraction must be a number > 0, got {f!r}")
-    if not strategy_class(cfg.strategy).caps_count:
+    if not strategy_class(cfg.strategy.name).caps_count:
         raise ConfigError(f"{path}: variant {vname!r}: count_fraction needs a strategy that caps the count "
-                          f"(max_surfels), not {cfg.strategy!r}")
+                          f"(max_surfels), not {cfg.strategy.name!r}")
     ref = [v for v in variants if isinstance(v, dict) and v.get("name") == of]
     if not ref or of == vname:
         raise ConfigError(f"{path}: variant {vname!r}: count_of names {of!r}, which is not another variant of the file")
@@ -224,7 +224,7 @@ def resolve_count(run: PlannedRun, runs: list[PlannedRun], reported: dict | None
                           f"{run.count_of!r}, which has not finished ({where} missing); run "
                           f"{run.scene}/{run.count_of} first")
     cap = max(1, int(round(run.count_fraction * int(count))))
-    return dataclasses.replace(run, config=run.config.replace(max_surfels=cap))
+    return dataclasses.replace(run, config=run.config.replace(**{"strategy.max_surfels": cap}))
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
@@ -244,9 +244,24 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     dataset = dataset if dataset is not None else load_training_data(config)
     test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
     result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
-    if not evaluate or result.steps < config.resolved().steps:
-        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
-    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
+    summary = {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps,
+               "finished": result.finished}
+    if result.stop is not None:
+        summary["stop"] = stop_summary(result.stop, result.steps, config.resolved().steps)
+    if not evaluate or not result.finished:
+        return summary
+    extra = {k: summary[k] for k in ("stop",) if k in summary}
+    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps, extra=extra) | {
+        "finished": True}
+
+
+def stop_summary(rule: dict, steps: int, max_steps: int) -> dict:
+    """What metrics.json says of a run with validation: why and when it stopped, and the step
+    whose model it kept."""
+    stopped = rule.get("stopped_at") is not None
+    return {"reason": rule["reason"] if stopped else f"the schedule ended at step {max_steps}",
+            "stopped_at": int(rule["stopped_at"]) if stopped else int(steps), "best_step": int(rule["best_step"]),
+            "best_val_psnr": rule["best_psnr"], "annealed_at": rule.get("annealed_at")}
 
 
 def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported: dict | None = None) -> str | None:
@@ -259,8 +274,8 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
         return None
     try:
         run = resolve_count(run, all_runs or [], reported)
-        log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir, run.config.strategy,
-                 f", max_surfels {run.config.max_surfels}" if run.count_fraction else "")
+        log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir,
+                 run.config.strategy.name, f", max_surfels {run.config.strategy.max_surfels}" if run.count_fraction else "")
         train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
     except KeyboardInterrupt:
         raise
@@ -342,8 +357,8 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
         if row is not None:
-            contrib = bool(r.config.contrib_prune_every or r.config.contrib_prune_final)
-            rows.append(dict(row, strategy=r.config.strategy, count_fraction=r.count_fraction, contrib_prune=contrib))
+            contrib = bool(r.config.strategy.contrib_prune_every or r.config.strategy.contrib_prune_final)
+            rows.append(dict(row, strategy=r.config.strategy.name, count_fraction=r.count_fraction, contrib_prune=contrib))
         elif (r.scene, r.variant) in earlier:
             log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir, report)
             rows.append(earlier[(r.scene, r.variant)])

@@ -9,14 +9,28 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 from pathlib import Path
 
 from ghsplat_jax.config_values import coerce
 from ghsplat_jax.raster.config import RasterConfig
+from ghsplat_jax.train.recipes import RECIPES
+from ghsplat_jax.train.strategies import DefaultSettings, StrategySettings, settings_from
 
-# The densification strategies (train/strategy.py registers them; a registered class adds its name).
-STRATEGIES = ("default", "budget", "mcmc")
+log = logging.getLogger("ghsplat.train")
+
+# Flat names of strategy settings from before strategies owned them -> the `[strategy]` field.
+LEGACY_STRATEGY_FIELDS = {"max_surfels": "max_surfels", "budget_schedule": "schedule",
+                          "mcmc_min_opacity": "min_opacity", "mcmc_grow_rate": "grow_rate",
+                          "mcmc_noise_lr": "noise_lr", "contrib_prune_every": "contrib_prune_every",
+                          "contrib_prune_final": "contrib_prune_final",
+                          "contrib_prune_threshold": "contrib_prune_threshold",
+                          "contrib_prune_views": "contrib_prune_views"}
+# Their old defaults: a saved config of any strategy wrote them all, and only a changed one matters.
+LEGACY_DEFAULTS = {"max_surfels": 0, "budget_schedule": "linear", "mcmc_min_opacity": 0.005, "mcmc_grow_rate": 0.05,
+                   "mcmc_noise_lr": 5e5, "contrib_prune_every": 0, "contrib_prune_final": False,
+                   "contrib_prune_threshold": 1.0, "contrib_prune_views": 0}
 # Flat names that earlier configs (and experiment files) used for fields of the raster section.
 RASTER_ALIASES = {"near": "near", "far": "far", "background": "background", "tile_size": "tile_size",
                   "chunk_size": "chunk_size", "batch_chunks": "batch_chunks", "raster_backward": "backward",
@@ -73,6 +87,32 @@ class TrainConfig:
     # background after densification ended (test PSNR 33.3 dB at step 15,000, 32.2 at 20,000).
     normal_loss_alpha_mask: bool = True
 
+    lambda_opacity_reg: float = -1.0    # L1 on opacities (mean over live surfels); -1: the strategy's default
+    #                                     (mcmc and auto 0.01, others 0)
+    lambda_scale_reg: float = -1.0      # L1 on scales (mean of exp(log_scales)); -1: the strategy's default (same)
+
+    # --- validation and stopping ----------------------------------------------------------
+    # Every val_hold_every-th training view is held out of training and rendered every val_every
+    # steps (0: no validation, every training view trains). The run stops itself when
+    # stop_patience checks in a row gain less than stop_min_gain dB over the best; the first such
+    # plateau only multiplies the means learning rate by lr_anneal (1: stop at once) and starts the
+    # count again. The best check's model is the run's result.
+    val_every: int = 0
+    val_hold_every: int = 8
+    stop_patience: int = 0              # 0: never stop before `steps`
+    stop_min_gain: float = 0.05         # dB over the best validation PSNR so far
+    stop_after: int = 0                 # no stop before this step
+    lr_anneal: float = 0.3
+
+    # --- resolution schedule ----------------------------------------------------------------
+    # "spectrum": train on images downscaled by 2^k early (DashGaussian): start at the coarsest
+    # scale that keeps res_energy of the images' spectral energy (and images of at least res_min_side
+    # pixels), and reach full resolution by step res_until at the pace of the energy gained.
+    res_schedule: str = "none"
+    res_until: int = 3000
+    res_energy: float = 0.8
+    res_min_side: int = 64
+
     # --- initialisation -------------------------------------------------------------------
     init_opacity: float = 0.1           # initial opacity of every surfel
     init_random_points: int = 100_000   # random points in the scene box when the dataset has none
@@ -81,9 +121,18 @@ class TrainConfig:
     init_scale_max: float = 0.0         # clamp of the initial scale as a fraction of the extent (0: none)
     random_init_scale: float = 0.5      # random points: multiple of the nearest-neighbour scale (see random_init.py)
 
+    # --- recipe -----------------------------------------------------------------------------
+    # A named set of settings laid under the other overrides that set it (train/recipes.py): "" is
+    # the 2DGS default (the Table 1 protocol); "auto" sizes its own model and stops by itself. Set it
+    # through a config file, the command line or `TrainConfig().replace(recipe=...)`: the
+    # constructor only records the name.
+    recipe: str = ""
+
     # --- densification (2DGS defaults) ---------------------------------------------------
-    strategy: str = "default"           # "default" (2DGS), "budget" (capped count), "mcmc" (3DGS-MCMC, fixed cap);
-    #                                     see train/strategy.py (the classes, their state and hooks)
+    # The strategy and its own settings: the `[strategy]` table (`name` plus the fields of that
+    # strategy's settings class, train/strategies/), or just its name. Strategies: "default" (2DGS),
+    # "budget" (capped count), "mcmc" (3DGS-MCMC, fixed cap), "auto" (sizes itself).
+    strategy: StrategySettings = DefaultSettings()
     densify_from: int = 500             # first densification step
     densify_until: int = 15_000         # no densification (or pruning) after this step
     densify_every: int = 100            # densify and prune every this many steps
@@ -100,28 +149,6 @@ class TrainConfig:
     opacity_reset_value: float = 0.01   # opacity after a reset
     reset_recovery_steps: int = 100     # no opacity pruning this soon after a reset (2DGS: the reset at 3000
     #                                     is followed by densification at 3100; short runs need the same gap)
-
-    # --- budgeted strategy ------------------------------------------------------------------
-    max_surfels: int = 0                # "budget": the hard cap on the count (0: 5x the initial count)
-    budget_schedule: str = "linear"     # "linear" growth from the initial count to the cap by densify_until,
-    #                                     or "immediate" (the cap is available from densify_from)
-
-    # --- MCMC strategy (3DGS-MCMC; refinement every densify_every steps in [densify_from, densify_until)) ---
-    mcmc_min_opacity: float = 0.005     # "dead" below this opacity: relocated onto live surfels sampled by opacity
-    mcmc_grow_rate: float = 0.05        # each round grows the live count by this fraction, up to max_surfels
-    mcmc_noise_lr: float = 5e5          # position noise = this x the means learning rate x in-plane covariance
-    lambda_opacity_reg: float = -1.0    # L1 on opacities (mean over live surfels); -1: the strategy's default
-    #                                     (mcmc 0.01, others 0)
-    lambda_scale_reg: float = -1.0      # L1 on scales (mean of exp(log_scales)); -1: the strategy's default (same)
-
-    # --- contribution pruning (any strategy) -------------------------------------------------
-    # Remove surfels whose blending weight summed over the training views (alpha x transmittance,
-    # in pixels) is under contrib_prune_threshold: every contrib_prune_every steps (0: never; scaled
-    # by scale_schedule) and/or once after the last step (contrib_prune_final).
-    contrib_prune_every: int = 0
-    contrib_prune_final: bool = False
-    contrib_prune_threshold: float = 1.0  # pixels' worth of weight over all the views counted
-    contrib_prune_views: int = 0        # training views to count (0: all; else a seeded subset)
 
     # --- fixed-capacity pool ------------------------------------------------------------
     initial_capacity: int = 0           # surfel slots at the start (0: 2x the initial count)
@@ -153,22 +180,34 @@ class TrainConfig:
     test_curve_every: int = 0
 
     def __post_init__(self):
-        from ghsplat_jax.train.strategy import strategy_class
-
+        if isinstance(self.strategy, (str, dict)):  # TrainConfig(strategy="mcmc") or a [strategy] table
+            try:
+                object.__setattr__(self, "strategy", settings_from(self.strategy))
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+        if not isinstance(self.strategy, StrategySettings):
+            raise ConfigError(f"strategy must be a strategy's settings, got {type(self.strategy).__name__}")
         try:
-            strategy_class(self.strategy).validate(self)
+            self.strategy.validate()
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        if self.max_surfels < 0:
-            raise ConfigError(f"max_surfels must be >= 0 (0: 5x the initial count), got {self.max_surfels}")
+            raise ConfigError(f"strategy {self.strategy.name!r}: {exc}") from None
+        if self.recipe and self.recipe not in RECIPES:
+            raise ConfigError(f"recipe must be one of {('',) + tuple(RECIPES)}, got {self.recipe!r}")
+        if self.val_every < 0 or self.val_hold_every < 2 or self.stop_patience < 0 or self.stop_after < 0:
+            raise ConfigError("val_every, stop_patience and stop_after must be >= 0 and val_hold_every >= 2, got "
+                              f"{self.val_every}, {self.stop_patience}, {self.stop_after}, {self.val_hold_every}")
+        if self.stop_patience and not self.val_every:
+            raise ConfigError("stop_patience needs validation checks: set val_every > 0")
+        if not 0 < self.lr_anneal <= 1:
+            raise ConfigError(f"lr_anneal must be in (0, 1], got {self.lr_anneal}")
+        if self.res_schedule not in ("none", "spectrum"):
+            raise ConfigError(f"res_schedule must be 'none' or 'spectrum', got {self.res_schedule!r}")
+        if not 0 < self.res_energy <= 1 or self.res_min_side < 1 or self.res_until < 0:
+            raise ConfigError("res_energy must be in (0, 1], res_min_side >= 1 and res_until >= 0, got "
+                              f"{self.res_energy}, {self.res_min_side}, {self.res_until}")
         for name in ("lambda_opacity_reg", "lambda_scale_reg"):
             if getattr(self, name) < 0 and getattr(self, name) != -1:
                 raise ConfigError(f"{name} must be >= 0, or -1 for the strategy's default, got {getattr(self, name)}")
-        if self.contrib_prune_every < 0 or self.contrib_prune_views < 0 or self.contrib_prune_threshold < 0:
-            raise ConfigError("contrib_prune_every, contrib_prune_views and contrib_prune_threshold must be >= 0, got "
-                              f"{self.contrib_prune_every}, {self.contrib_prune_views}, {self.contrib_prune_threshold}")
-        if self.budget_schedule not in ("linear", "immediate"):
-            raise ConfigError(f"budget_schedule must be 'linear' or 'immediate', got {self.budget_schedule!r}")
         if self.steps < 0:
             raise ConfigError(f"steps must be >= 0, got {self.steps}")
         if self.step_threads < 0:
@@ -206,8 +245,9 @@ class TrainConfig:
             lr_means_steps=s(self.lr_means_steps) if self.lr_means_steps else 0,
             dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
-            opacity_reset_every=s(self.opacity_reset_every, 100),
-            contrib_prune_every=s(self.contrib_prune_every) if self.contrib_prune_every else 0)
+            opacity_reset_every=s(self.opacity_reset_every, 100), res_until=s(self.res_until, 0),
+            strategy=dataclasses.replace(self.strategy, contrib_prune_every=s(self.strategy.contrib_prune_every)
+                                         if self.strategy.contrib_prune_every else 0))
 
     def replace(self, **changes) -> "TrainConfig":
         return apply_overrides(self, changes)
@@ -218,6 +258,8 @@ class TrainConfig:
 
 
 def _plain(v):
+    if isinstance(v, StrategySettings):
+        return v.to_dict()
     if isinstance(v, RasterConfig):
         return {f.name: _plain(getattr(v, f.name)) for f in dataclasses.fields(v) if getattr(v, f.name) is not None}
     return list(v) if isinstance(v, tuple) else v
@@ -225,9 +267,17 @@ def _plain(v):
 
 def apply_overrides(config: TrainConfig, overrides: dict, source: str = "overrides") -> TrainConfig:
     """A copy of `config` with fields replaced; unknown names or wrong types name `source`.
-    Raster fields come as a `raster` table, as dotted `raster.NAME` keys or by their aliases."""
+    Raster fields come as a `raster` table, as dotted `raster.NAME` keys or by their aliases;
+    strategy settings as a `strategy` table (or name), as dotted `strategy.NAME` keys or by their
+    flat names of old (with a warning). A `recipe` is laid under everything else given."""
+    overrides = dict(overrides)
+    if overrides.get("recipe") and overrides["recipe"] != config.recipe:
+        name = overrides["recipe"]
+        if name not in RECIPES:
+            raise ConfigError(f"{source}: recipe must be one of {('',) + tuple(RECIPES)}, got {name!r}")
+        config = apply_overrides(config, RECIPES[name], f"recipe {name!r}")
     fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
-    changes, raster = {}, {}
+    changes, raster, strategy, legacy = {}, {}, {}, []
     for key, value in overrides.items():
         if key == "raster":
             if not isinstance(value, dict):
@@ -240,6 +290,19 @@ def apply_overrides(config: TrainConfig, overrides: dict, source: str = "overrid
         if key in RASTER_ALIASES:
             raster[RASTER_ALIASES[key]] = None if key == "pair_capacity" and value == 0 else value
             continue
+        if key == "strategy":
+            if isinstance(value, StrategySettings):
+                value = value.to_dict()
+            if not isinstance(value, (str, dict)):
+                raise ConfigError(f"{source}: option 'strategy' must be a strategy's name or a table, got {value!r}")
+            strategy.update({"name": value} if isinstance(value, str) else value)
+            continue
+        if key.startswith("strategy."):
+            strategy[key.removeprefix("strategy.")] = value
+            continue
+        if key in LEGACY_STRATEGY_FIELDS:
+            legacy.append((key, value))
+            continue
         if key not in fields:
             close = [n for n in fields if key.split("_")[0] in n][:5]
             hint = f" (did you mean one of {close}?)" if close else ""
@@ -248,9 +311,51 @@ def apply_overrides(config: TrainConfig, overrides: dict, source: str = "overrid
         changes[key] = coerce(value, default, f"{source}: option {key!r}", ConfigError)
     if raster:
         changes["raster"] = _raster_overrides(config.raster, raster, source)
+    if strategy or legacy:
+        changes["strategy"] = _strategy_overrides(config.strategy, strategy, legacy, source)
     try:
         return dataclasses.replace(config, **changes)
     except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _strategy_overrides(base: StrategySettings, values: dict, legacy: list, source: str) -> StrategySettings:
+    """The strategy settings after `values` (a name switches to that strategy's defaults first)
+    and old flat names (mapped onto the strategy's fields; one left at its old default is
+    dropped when the strategy has no such field, as every saved config wrote them all)."""
+    values = dict(values)
+    name = values.pop("name", base.name)
+    table = {} if name != base.name else {k: v for k, v in base.to_dict().items() if k != "name"}
+    fields = {f.name for f in dataclasses.fields(strategy_settings_class(name, source))}
+    moved = []
+    for key, value in legacy:
+        new = LEGACY_STRATEGY_FIELDS[key]
+        if new in fields:
+            if value != LEGACY_DEFAULTS[key] or new in table:
+                table[new] = value
+                moved.append(f"{key} -> strategy.{new}")
+        elif value != LEGACY_DEFAULTS[key]:
+            raise ConfigError(f"{source}: option {key!r} = {value!r} has no meaning for strategy {name!r}")
+    if moved:
+        log.warning("%s: flat strategy settings are deprecated; read as the [strategy] table's fields (%s)", source,
+                    ", ".join(moved))
+    defaults = strategy_settings_class(name, source)()
+    for key, value in values.items():
+        if key not in fields:
+            raise ConfigError(f"{source}: strategy {name!r} has no setting {key!r} (its settings: {sorted(fields)})")
+        table[key] = coerce(value, getattr(defaults, key), f"{source}: option 'strategy.{key}'", ConfigError)
+    try:
+        return settings_from({"name": name} | table)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def strategy_settings_class(name: str, source: str = "config") -> type[StrategySettings]:
+    from ghsplat_jax.train.strategies import strategy_class
+
+    try:
+        return strategy_class(name).settings_class
+    except ValueError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 
 
@@ -300,7 +405,9 @@ def settings_missing_from(path: str | os.PathLike) -> list[str]:
     written before they existed, whose run would now take their defaults."""
     saved = TrainConfig().to_dict()
     table = load_config_table(path)
-    missing = [k for k in saved if k != "raster" and k not in table]
+    legacy_strategy = isinstance(table.get("strategy"), str)
+    missing = [k for k in saved if k not in ("raster", "recipe") and k not in table
+               and not (legacy_strategy and k == "strategy")]
     raster = table.get("raster", {})
     return missing + [f"raster.{k}" for k in saved["raster"] if k not in raster]
 

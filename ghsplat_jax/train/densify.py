@@ -156,9 +156,9 @@ reset_opacity_jit = jax.jit(reset_opacity, static_argnames=("value",))
 count_candidates_jit = jax.jit(count_candidates, static_argnames=("grad_threshold",))
 
 
-def budget_target(config, step: int, initial_count: int, max_surfels: int) -> int:
-    """The budgeted strategy's allowed count at `step`."""
-    if config.budget_schedule == "immediate":
+def budget_target(config, schedule: str, step: int, initial_count: int, max_surfels: int) -> int:
+    """The budgeted strategy's allowed count at `step` ("linear" or "immediate" `schedule`)."""
+    if schedule == "immediate":
         return max_surfels
     span = max(config.densify_until - config.densify_from, 1)
     t = min(max((step - config.densify_from) / span, 0.0), 1.0)

@@ -32,7 +32,7 @@ class LossWeights:
 
     @classmethod
     def from_config(cls, c) -> "LossWeights":
-        from ghsplat_jax.train.strategy import loss_weight
+        from ghsplat_jax.train.strategies import loss_weight
 
         return cls(c.lambda_dssim, c.lambda_dist, c.dist_from, c.lambda_normal, c.normal_from,
                    c.depth_ratio, c.sh_degree, c.sh_increase_every, loss_weight(c, "lambda_opacity_reg"),

@@ -31,8 +31,10 @@ from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, S
                                        load_run_checkpoint, load_training_data, peak_rss_mb)
 from ghsplat_jax.train.state import (TrainState, compiles_cost_more_than_slots, initial_surfels, needs_random_init,
                                     new_state, pad_params, random_init_box)
+from ghsplat_jax.train.resolution import box_downscale, factor_at, scale_intrinsics, spectrum_schedule
 from ghsplat_jax.train.step_builder import make_train_step
-from ghsplat_jax.train.strategy import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
+from ghsplat_jax.train.stopping import PlateauRule
+from ghsplat_jax.train.strategies import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)
 
 log = logging.getLogger("ghsplat.train")
 
@@ -50,6 +52,8 @@ class TrainResult:
     out_dir: Path
     initial_count: int
     strategy_state: dict = dataclasses.field(default_factory=dict)  # the strategy's own state at the end
+    finished: bool = False  # the schedule ran out or the stop rule stopped it (not an `until` pause)
+    stop: dict | None = None  # the stop rule's state (runs with validation): best step, why it stopped
 
     @property
     def surfels(self):
@@ -123,6 +127,16 @@ def _jsonable(d: dict) -> dict:
 FEW_TRAIN_VIEWS = 10
 
 
+def hold_out(views: list, every: int) -> tuple[list, list]:
+    """(training views, validation views): every `every`-th view from the middle of the first
+    stride on (so it does not line up with a test split that takes every n-th from the first),
+    and none when fewer than two would be held out or fewer than 8 would train."""
+    picked = set(range(every // 2, len(views), every))
+    if len(picked) < 2 or len(views) - len(picked) < 8:
+        return list(views), []
+    return [v for i, v in enumerate(views) if i not in picked], [v for i, v in enumerate(views) if i in picked]
+
+
 def warn_about_inputs(config: TrainConfig, dataset) -> list[str]:
     """Warn (and return the messages) where the inputs predict a poor model that training itself
     cannot notice: random initialisation for want of SfM points, or too few training views."""
@@ -148,8 +162,22 @@ class _Session:
     def __init__(self, config: TrainConfig, out_dir: Path, dataset, resume: bool, render_fn=None):
         self.config, self.out = config, out_dir
         self.ds = dataset
+        train_views, self.val_views = hold_out(dataset.train, config.val_hold_every) if config.val_every else (
+            dataset.train, [])
+        if config.val_every and not self.val_views:
+            log.warning("%s: too few training views (%d) to hold some out for validation; the stop rule reads the "
+                        "training views' PSNR instead", config.data, len(dataset.train))
+            self.val_views = list(dataset.train)
         self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(
-            dataset.train, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
+            train_views, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
+        self.schedule = (spectrum_schedule(np.asarray(self.images), config.res_until, config.res_energy,
+                                           config.res_min_side) if config.res_schedule == "spectrum" else [(0, 1)])
+        if len(self.schedule) > 1:
+            log.info("resolution schedule: %s", ", ".join(f"1/{f} from step {s}" for s, f in self.schedule))
+        self.levels: dict[int, tuple] = {1: (self.images, self.Ks, self.width, self.height)}
+        self.rule = PlateauRule.from_config(config, full_resolution_from=self.schedule[-1][0])
+        self.stop_state = PlateauRule.initial()
+        self.best = None  # (state, strategy state) of the best validation check
         self.extent = float(dataset.scene_extent)
         if not (math.isfinite(self.extent) and self.extent > 0):
             raise ValueError(f"dataset {config.data}: scene extent {self.extent} is not a positive number")
@@ -201,6 +229,7 @@ class _Session:
         self.state, meta = load_run_checkpoint(path, self.optimizers)
         self.pair_capacity = int(meta["pair_capacity"])
         self.rollbacks = int(meta.get("rollbacks", 0))
+        self.stop_state = meta.get("stop_rule") or PlateauRule.initial()
         self.prior_seconds = float(meta.get("train_seconds", 0.0))
         self.prior_peak_rss_mb = float(meta.get("peak_rss_mb", 0.0))
         self.initial_count = int(meta["initial_count"])
@@ -216,7 +245,7 @@ class _Session:
         extra = dict(step=int(s.step), capacity=s.capacity, sh_degree=s.params.sh_degree,
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
                      initial_count=self.initial_count, peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb),
-                     config=self.config.to_dict())
+                     config=self.config.to_dict(), stop_rule=self.stop_state)
         extra.update(self.strategy.meta(self.sstate))
         ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra, aux=self.sstate)
 
@@ -234,7 +263,58 @@ class _Session:
         return info
 
     def finish(self) -> dict:
+        if self.best is not None and self.best[0] is not self.state:
+            log.info("the model of the best validation check (step %d, %.2f dB) is the result",
+                     self.stop_state["best_step"], self.stop_state["best_psnr"])
+            self.state, self.sstate = self.best
         return self._hook("at_end")
+
+    # -- resolution and validation ------------------------------------------------------------
+    def level(self, step: int) -> tuple:
+        """(images, Ks, width, height) of the scale `step` trains at."""
+        f = factor_at(self.schedule, step)
+        if f not in self.levels:
+            images = box_downscale(np.asarray(self.images), f)
+            self.levels[f] = (jnp.asarray(images), jnp.asarray(scale_intrinsics(np.asarray(self.Ks), f)),
+                              images.shape[2], images.shape[1])
+        return self.levels[f]
+
+    def validate(self) -> dict:
+        """The held-out views' mean PSNR (and L1) of the current model, at full resolution."""
+        from ghsplat_jax.raster.render import render
+        from ghsplat_jax.train.losses import l1, psnr
+        from ghsplat_jax.train.state import render_params
+
+        lean = dataclasses.replace(self.config.raster, median=False, distortion=False, depth_normal=False)
+        s, psnrs, l1s = self.state, [], []
+        for v in self.val_views:
+            while True:
+                rcfg = dataclasses.replace(lean, pair_capacity=self.pair_capacity, on_overflow="report")
+                out = render(render_params(s.params, s.active, v.camera.world_to_cam), v.camera, rcfg)
+                if int(out.stats.overflow) <= 0:
+                    break
+                self.pair_capacity = max(2 * self.pair_capacity, pair_bucket(int(out.stats.num_pairs)))
+            target = jnp.asarray(v.image)
+            psnrs.append(float(psnr(out.rgb, target)))
+            l1s.append(float(l1(out.rgb, target)))
+        return {"psnr": float(np.mean(psnrs)), "l1": float(np.mean(l1s)), "num_views": len(psnrs)}
+
+    def check(self, step: int) -> dict:
+        """A validation check after `step` steps: the strategy's hook, then the stop rule."""
+        val = self.validate() | {"train_scale": factor_at(self.schedule, step - 1)}
+        self.sstate, info = self.strategy.on_validation(self.context(), self.state, self.sstate, step, val)
+        self.stop_state, action = self.rule.update(self.stop_state, step, val["psnr"])
+        if self.stop_state["best_step"] == step:  # also when the same check ends the run
+            self.best = (self.state, self.sstate)
+        if action == "anneal":
+            log.info("step %d: validation PSNR flat for %d checks (best %.2f dB at step %d); means learning rate x %g",
+                     step, self.rule.patience, self.stop_state["best_psnr"], self.stop_state["best_step"],
+                     self.rule.anneal)
+        return {"val_psnr": val["psnr"], "val_l1": val["l1"], "stop_action": action} | info
+
+    @property
+    def stopped(self) -> bool:
+        return self.stop_state.get("stopped_at") is not None
 
     # -- one iteration ------------------------------------------------------------------
     def step(self, step: int, before_round=None) -> dict:
@@ -243,11 +323,11 @@ class _Session:
         (which may reset every opacity), as 3DGS evaluates its test views."""
         c = self.config
         v = view_order(c.seed, step, self.images.shape[0])
+        images, Ks, width, height = self.level(step)
         while True:
             rcfg = step_raster_config(c, self.pair_capacity, step)
-            lr = jnp.float32(self.means_lr(step))
-            new, m = self.step_fn(self.state, self.images[v], self.Ks[v], self.w2cs[v], lr, rcfg, self.width,
-                                  self.height)
+            lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
+            new, m = self.step_fn(self.state, images[v], Ks[v], self.w2cs[v], lr, rcfg, width, height)
             m = jax.device_get(m)
             if int(m["overflow"]) <= 0:
                 break
@@ -399,12 +479,18 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
 
     with _terminate_as_interrupt():
         try:
-            while step < stop:
+            while step < stop and not session.stopped:
                 due = curve is not None and (step + 1) % config.test_curve_every == 0
                 m = session.step(step, before_round=curve_point if due else None)
                 step += 1
                 if session.changed:
                     num = int(jnp.sum(session.state.active))
+                if config.val_every and step % config.val_every == 0 and not m.get("rolled_back"):
+                    m.update(session.check(step))
+                    if session.stopped:
+                        log.info("step %d: stopped: %s; best validation PSNR %.2f dB at step %d", step,
+                                 session.stop_state["reason"], session.stop_state["best_psnr"],
+                                 session.stop_state["best_step"])
                 now = time.perf_counter()
                 rate = (step - last_step) / max(now - last_t, 1e-9)
                 record = dict(step=step, num_surfels=num, capacity=session.state.capacity,
@@ -431,15 +517,18 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
             for fh in logs:
                 fh.close()
             bar.close()
-    if step >= config.steps:
+    if session.stopped:
+        step = max(step, int(session.stop_state["stopped_at"]))  # a resumed stopped run ran them before
+    finished = step >= config.steps or session.stopped
+    if finished:
         end_info = session.finish()  # e.g. a final contribution-pruning pass, before the PLY and checkpoint
         if end_info:
             log.info("end of training: %s", end_info)
     total = seconds()
     session.save(total)
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count,
-                         jax.device_get(session.sstate))
-    if step >= config.steps:
+                         jax.device_get(session.sstate), finished, session.stop_state if config.val_every else None)
+    if finished:
         from ghsplat_jax.data.ply import save_ply
 
         save_ply(result.surfels, out / PLY_NAME)

@@ -1,0 +1,26 @@
+"""Training recipes: named sets of settings that `recipe = NAME` lays under every other
+override (a recipe's table, then the config file, then the command line).
+
+- "" (none): the 2DGS defaults, the Table 1 protocol: 30k steps, adaptive density control.
+- "auto": a model that sizes itself and a run that stops itself. Growth by the `auto` strategy
+  (train/strategies/auto.py) until validation PSNR per doubling of the count falls under its
+  threshold; a validation split carved from the training views; a stop on a validation plateau
+  (after one annealing of the means learning rate), keeping the best check's model; images at
+  reduced resolution early, raised by their spectrum (DashGaussian); `steps` only a ceiling.
+"""
+
+from __future__ import annotations
+
+RECIPES: dict[str, dict] = {
+    "auto": {
+        "strategy": {"name": "auto"},
+        "val_every": 250,
+        "stop_patience": 3,
+        "stop_min_gain": 0.05,
+        "stop_after": 1500,
+        "res_schedule": "spectrum",
+        "res_until": 2000,
+        "densify_from": 300,
+        "normal_from": 2000,
+    },
+}

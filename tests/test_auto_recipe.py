@@ -1,0 +1,104 @@
+"""The self-sizing, self-stopping recipe: the plateau rule, the resolution schedule, the
+growth rule of the `auto` strategy, and a whole tiny run that stops by itself."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ghsplat_jax.train.config import ConfigError, TrainConfig
+from ghsplat_jax.train.recipes import RECIPES
+from ghsplat_jax.train.resolution import box_downscale, energy_kept, factor_at, scale_intrinsics, spectrum_schedule
+from ghsplat_jax.train.stopping import PlateauRule
+from ghsplat_jax.train.strategies.auto import gain_per_doubling
+
+
+def test_plateau_rule_anneals_once_then_stops_and_remembers_the_best():
+    rule = PlateauRule(patience=2, min_gain=0.1, stop_after=0, anneal=0.5)
+    s = rule.initial()
+    actions = []
+    for step, psnr in enumerate([20.0, 21.0, 21.05, 21.02, 21.5, 21.5, 21.55], start=1):
+        s, a = rule.update(s, step * 100, psnr)
+        actions.append(a)
+    # 21.05 and 21.55 are better but under min_gain: kept as the best model, yet they count as waiting.
+    assert actions == ["best", "best", "best", "anneal", "best", "wait", "stop"]
+    assert s["lr_scale"] == 0.5 and s["annealed_at"] == 400 and s["stopped_at"] == 700
+    assert s["best_step"] == 700 and s["best_psnr"] == 21.55 and "0.1 dB" in s["reason"]
+
+
+def test_plateau_rule_waits_for_stop_after_and_ignores_nan():
+    rule = PlateauRule(patience=1, min_gain=0.1, stop_after=1000, anneal=1.0)
+    s = rule.initial()
+    s, _ = rule.update(s, 100, 20.0)
+    s, a = rule.update(s, 200, float("nan"))
+    assert a == "wait" and s["best_psnr"] == 20.0  # a NaN check is never the best
+    s, a = rule.update(s, 1000, 19.0)
+    assert a == "stop" and s["annealed_at"] is None  # anneal = 1: stop at the first plateau
+
+
+def test_box_downscale_and_intrinsics_agree_on_where_a_point_lands():
+    img = np.zeros((1, 24, 32, 3), np.float32)
+    img[0, 8:12, 20:24] = 1.0  # a 4x4 block
+    small = box_downscale(img, 4)
+    assert small.shape == (1, 6, 8, 3) and small[0, 2, 5, 0] == 1.0 and small.sum() == 3.0
+    K = np.array([[[30.0, 0, 16.0], [0, 30.0, 12.0], [0, 0, 1]]], np.float32)
+    p = K[0] @ np.array([0.3, -0.1, 1.0])  # pixel coordinates at full size
+    q = scale_intrinsics(K, 4)[0] @ np.array([0.3, -0.1, 1.0])
+    np.testing.assert_allclose(q[:2], p[:2] / 4, rtol=1e-6)
+    assert box_downscale(np.ones((2, 25, 33, 4), np.float32), 2).shape == (2, 12, 16, 4)  # remainders cropped
+
+
+def test_spectrum_schedule_starts_coarse_for_smooth_images_and_ends_at_full_resolution():
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:256, 0:256] / 256.0
+    smooth = np.stack([np.sin(2 * np.pi * (x + k * y))[..., None].repeat(3, -1) for k in range(4)]).astype(np.float32)
+    noise = rng.random((4, 256, 256, 3), np.float32)
+    assert energy_kept(smooth, 8) > 0.99 and energy_kept(noise, 2) < 0.3
+    sched = spectrum_schedule(smooth, until=1000, energy=0.8, min_side=32)
+    assert sched[0] == (0, 8) and sched[-1] == (1000, 1)
+    assert [f for _, f in sched] == [8, 4, 2, 1] and all(a[0] < b[0] for a, b in zip(sched, sched[1:]))
+    assert factor_at(sched, 0) == 8 and factor_at(sched, 999) == 2 and factor_at(sched, 1000) == 1
+    assert spectrum_schedule(noise, until=1000) == [(0, 1)]  # white noise needs every pixel from the start
+    assert spectrum_schedule(smooth, until=1000, min_side=200) == [(0, 1)]  # 128 px < 200: no smaller scale
+
+
+def test_gain_per_doubling_reads_psnr_per_doubling_of_the_count():
+    assert gain_per_doubling((1000, 20.0), (2000, 20.5)) == pytest.approx(0.5)
+    assert gain_per_doubling((1000, 20.0), (4000, 21.0)) == pytest.approx(0.5)
+    assert gain_per_doubling((1000, 20.0), (1020, 25.0)) is None  # the count barely moved
+
+
+def test_auto_recipe_is_a_table_under_the_other_settings():
+    cfg = TrainConfig().replace(recipe="auto", val_every=50)
+    assert cfg.val_every == 50 and cfg.strategy.name == "auto" and cfg.res_schedule == "spectrum"
+    assert cfg.stop_patience == RECIPES["auto"]["stop_patience"]
+    with pytest.raises(ConfigError, match="recipe must be one of"):
+        TrainConfig().replace(recipe="fastest")
+    with pytest.raises(ConfigError, match="stop_patience needs validation"):
+        TrainConfig(stop_patience=3)
+
+
+def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
+    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+
+    ds = cached_synthetic_dataset(num_views=20, width=32, height=24, num_surfels=40, test_every=5, num_points=200)
+    cfg = TrainConfig().replace(recipe="auto", steps=400, val_every=10, stop_patience=2, stop_min_gain=0.5,
+                                stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
+                                normal_from=0, lr_sh_dc=0.02, sh_degree=1, sh_increase_every=10, progress=False,
+                                checkpoint_every=1000, pair_capacity=16384)
+    assert cfg.replace(recipe="auto").val_every == 10  # the same recipe again changes nothing
+    metrics = train_and_evaluate(cfg, tmp_path / "run", dataset=ds)
+    stop = metrics["stop"]
+    assert metrics["finished"] and metrics["steps"] == stop["stopped_at"] < 400, stop
+    assert "validation PSNR gained less than 0.5 dB" in stop["reason"] and stop["annealed_at"] is not None
+    rows = [json.loads(x) for x in (tmp_path / "run" / "stats.jsonl").read_text().splitlines()]
+    checks = {r["step"]: r for r in rows if "val_psnr" in r}
+    assert max(checks) == stop["stopped_at"] and checks[stop["best_step"]]["val_psnr"] == stop["best_val_psnr"]
+    assert stop["best_val_psnr"] == max(r["val_psnr"] for r in checks.values())
+    # The first steps trained on half-size images: the schedule reached full size at step 20.
+    assert (tmp_path / "run" / "point_cloud.ply").is_file() and math.isfinite(metrics["test"]["psnr"])
+    assert metrics["num_gaussians"] > 0 and metrics["recipe"] == "auto" and metrics["strategy"] == "auto"
