@@ -1,4 +1,4 @@
-"""The package's imports go one way (DESIGN.md): core <- raster <- data <- train <- eval <-
+"""The package's imports go one way (docs/design.md): core <- raster <- data <- train <- eval <-
 scene, sfm, synth, sim <- commands / cli. Every import statement counts, at module level or
 inside a function (a function-local import hides a cycle from Python, not from this test)."""
 

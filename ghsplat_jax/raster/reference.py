@@ -1,7 +1,7 @@
 """Dense float64 reference renderer in NumPy: every pixel evaluates every surfel.
 
 No tiles, no chunks, no log-space tricks: a straight transcription of the 2DGS rules that the
-tiled rasterizer is tested against (see DESIGN.md). Slow; for small tests only.
+tiled rasterizer is tested against (see docs/design.md). Slow; for small tests only.
 """
 
 from __future__ import annotations

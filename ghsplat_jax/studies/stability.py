@@ -425,7 +425,7 @@ def run_raster(case: dict, ctx) -> list[dict]:
                  ("rgb", "alpha", "depth", "median_depth", "normal", "distortion"))
     err = {k: float(np.max(np.abs(np.asarray(getattr(out, k), np.float64) - ref[k]))) for k in ("rgb", "alpha")}
     worst = max(err.values())
-    # The rasterizer bins each surfel over its 3-sigma ellipse, as 2DGS does (DESIGN.md, "Bounds");
+    # The rasterizer bins each surfel over its 3-sigma ellipse, as 2DGS does (docs/design.md, "Bounds");
     # the dense reference does not, so each pixel may lose up to opacity * exp(-9/2) per surfel.
     opacity = 1 / (1 + np.exp(-np.asarray(s.opacity_logits, np.float64)[keep]))
     truncation = float(opacity.max() * np.exp(-4.5)) if opacity.max() * np.exp(-4.5) >= 1 / 255 else 0.0
