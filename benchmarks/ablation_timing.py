@@ -20,7 +20,7 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-from ghsplat_jax.eval.charts import write_pareto_charts
+from ghsplat_jax.experiments.charts import write_pareto_charts
 from ghsplat_jax.io_utils import machine_info, write_json
 from ghsplat_jax.train.config import load_config
 from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, CONFIG_NAME, load_training_data
@@ -56,7 +56,7 @@ def main(argv=None) -> int:
 
 
 def write_markdown(path: Path, rows: list[dict], steps: int) -> None:
-    from ghsplat_jax.eval.report import markdown_table
+    from ghsplat_jax.experiments.report import markdown_table
     from ghsplat_jax.io_utils import atomic_write
 
     table = [dict(r, logged=f"{r['step_seconds']:.3f}", wall=f"{r['interleaved_step_seconds']:.3f}",

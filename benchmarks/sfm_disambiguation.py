@@ -32,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from sfm_speed import _clean
 
 from ghsplat_jax.io_utils import atomic_write, save_figure, write_json
-from ghsplat_jax.studies.sfm_rows import Case
-from ghsplat_jax.studies.sfm_rows import run_case as _run_case
+from ghsplat_jax.experiments.sfm_rows import Case
+from ghsplat_jax.experiments.sfm_rows import run_case as _run_case
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sfm_disambiguation"
 

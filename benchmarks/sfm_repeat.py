@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ghsplat_jax.eval.report import markdown_table
+from ghsplat_jax.experiments.report import markdown_table
 from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
 from ghsplat_jax.sfm.evaluate import compare_model_dirs
 

@@ -19,7 +19,7 @@ COMMANDS = {
     "render": "ghsplat_jax.commands.render",
     "sfm": "ghsplat_jax.sfm.command",
     "train": "ghsplat_jax.commands.train",
-    "eval": "ghsplat_jax.eval.command",
+    "eval": "ghsplat_jax.commands.eval",
     "run": "ghsplat_jax.commands.run",
     "export": "ghsplat_jax.scene.export_command",
     "compose": "ghsplat_jax.scene.compose_command",

@@ -424,7 +424,7 @@ def test_layout_reader_under_fuzz(tmp_path):
 def test_experiment_reader_under_fuzz(tmp_path):
     from pathlib import Path
 
-    from ghsplat_jax.eval.runner import load_experiment
+    from ghsplat_jax.experiments.runner import load_experiment
     from ghsplat_jax.train.config import ConfigError
 
     base = (Path(__file__).parents[1] / "experiments" / "quick_cpu.toml").read_text()

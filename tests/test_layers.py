@@ -22,7 +22,8 @@ LAYERS = {
     "train": 4,
     "eval": 5,
     "scene": 6, "sfm": 6, "synth": 6, "sim": 6,
-    "commands": 7, "studies": 7, "cli": 7, "__init__": 7,
+    "experiments": 7,
+    "commands": 8, "cli": 8, "__init__": 8,
 }
 # Genuine exceptions, each with its reason: (importing part, imported part) -> reason.
 EXCEPTIONS: dict[tuple[str, str], str] = {}

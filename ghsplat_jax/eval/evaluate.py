@@ -1,5 +1,6 @@
 """Evaluate trained surfels on a dataset's views: metrics per view and split, render time,
-renders with depth and normal maps, and the run's metrics.json (train/run_dir.py: where)."""
+renders with depth and normal maps, and the run's metrics.json (train/run_dir.py: where);
+train_and_evaluate: one run trained and evaluated (`ghsplat train`, the experiment runner)."""
 
 from __future__ import annotations
 
@@ -156,3 +157,26 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     dataset = rd.load_training_data(config)
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
                     train_peak_rss_mb=meta.get("peak_rss_mb"))
+
+
+def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
+                       until: int | None = None) -> dict:
+    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
+    or when stopped early by `until`)."""
+    from ghsplat_jax.train import train
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    if resume:  # a process killed mid-write leaves scratch folders beside the outputs
+        from ghsplat_jax.io_utils import remove_scratch
+
+        for p in remove_scratch(out_dir):
+            log.info("removed %s, left by an interrupted write", p)
+    dataset = dataset if dataset is not None else load_training_data(config)
+    test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
+    result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
+    if not evaluate or result.steps < config.resolved().steps:
+        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
+    return _evaluate(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
+
+
+_evaluate = evaluate  # train_and_evaluate's `evaluate` flag shadows the function's name

@@ -4,8 +4,9 @@ One table, a row per (case, method): pass or fail by a stated criterion, the mea
 against ground truth, how the tool detects the failure and the exact message it gives the
 user. Case families (`[[cases]]` entries, each with `family` and `name`):
 
-    sfm_recorded  a row of benchmarks/results/sfm_disambiguation/results.json (identical vs
-                  varied plants, video-rate frames at 480x360): too slow to redo in minutes
+    sfm_recorded  a row of the recorded SfM benchmark results the experiment file names in
+                  `sfm_recorded` (benchmarks/results/sfm_disambiguation/results.json: identical
+                  vs varied plants, video-rate frames at 480x360): too slow to redo in minutes
     sfm           a live SfM run on a procedural row: few views, low texture (blurred,
                   low-contrast images), ... scored by camera-centre RMSE in % of the extent
     train         training on a synthetic row ([prepare]) from noisy poses (pose_noise, a
@@ -43,7 +44,6 @@ from ghsplat_jax.io_utils import atomic_write, machine_info, save_figure, write_
 log = logging.getLogger("ghsplat.stability")
 
 FAMILIES = ("sfm_recorded", "sfm", "train", "divergence", "raster")
-RECORDED = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "sfm_disambiguation" / "results.json"
 SFM_GOAL_PCT = 2.0       # SfM passes when the tool says ok and the centre RMSE is within this % of the extent
 PSNR_DROP_DB = 1.0       # training passes when its median test PSNR is within this of the baseline's
 RASTER_TOL = 1e-3        # rendering passes when finite and within this of the float64 reference (tests' bound)
@@ -119,13 +119,21 @@ def _sfm_row(case: dict, r: dict, source: str) -> dict:
                 image_size=r.get("image_size"), seconds=r.get("total_s"))
 
 
+def _recorded(ctx) -> Path:
+    """The recorded SfM results file the experiment names (`sfm_recorded`)."""
+    if ctx is None or ctx.recorded is None:
+        raise StudyError("sfm_recorded cases need `sfm_recorded = \"PATH/results.json\"` in the experiment file")
+    return ctx.recorded
+
+
 def run_sfm_recorded(case: dict, ctx) -> list[dict]:
-    data = json.loads(RECORDED.read_text())
+    recorded = _recorded(ctx)
+    data = json.loads(recorded.read_text())
     rows = [r for r in data["rows"] if r["case"] == case["recorded"]]
     if not rows:
-        raise StudyError(f"case {case['name']!r}: no rows for {case['recorded']!r} in {RECORDED}")
+        raise StudyError(f"case {case['name']!r}: no rows for {case['recorded']!r} in {recorded}")
     methods = case.get("methods", ["none", "auto"])
-    src = (f"recorded: benchmarks/results/sfm_disambiguation/results.json ({data['image_size'][0]}x"
+    src = (f"recorded: {recorded.as_posix()} ({data['image_size'][0]}x"
            f"{data['image_size'][1]}, case {case['recorded']})")
     return [_sfm_row(case, r, src) for m in methods for r in rows if r["method"] == m]
 
@@ -149,7 +157,7 @@ def _degrade(blur_px: float, contrast: float):
 def run_sfm(case: dict, ctx) -> list[dict]:
     import pycolmap
 
-    from ghsplat_jax.studies.sfm_rows import Case, run_case
+    from ghsplat_jax.experiments.sfm_rows import Case, run_case
 
     pycolmap.logging.minloglevel = 2
     c = Case(case["name"], int(case.get("plants", 5)), bool(case.get("identical", False)),
@@ -466,6 +474,7 @@ class Context:
     row: Path | None = None
     baseline_psnr: float | None = None
     prepare: dict = dataclasses.field(default_factory=dict)
+    recorded: Path | None = None  # the file sfm_recorded cases read (the experiment's `sfm_recorded`)
 
 
 def _key(case: dict, ctx) -> str:
@@ -473,7 +482,9 @@ def _key(case: dict, ctx) -> str:
     if case["family"] in ("train", "divergence"):
         extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "baseline": ctx.baseline_psnr}
     elif case["family"] == "sfm_recorded":  # the rows it reads
-        extra = {"recorded": hashlib.sha256(RECORDED.read_bytes()).hexdigest() if RECORDED.is_file() else None}
+        recorded = ctx.recorded if ctx is not None else None
+        extra = {"recorded": hashlib.sha256(recorded.read_bytes()).hexdigest() if recorded and recorded.is_file()
+                 else None}
     elif case["family"] == "sfm":  # the SfM defaults it runs with
         from ghsplat_jax.sfm.pipeline import SfmOptions
 
@@ -482,7 +493,7 @@ def _key(case: dict, ctx) -> str:
 
 
 def run_study(exp, only: set[str] | None = None) -> dict:
-    """Run every case of a loaded stability experiment (`eval.runner.Experiment`, kind
+    """Run every case of a loaded stability experiment (`experiments.runner.Experiment`, kind
     "stability") and write the reports; returns {"rows", "failed" (errors), "reports"}."""
     from ghsplat_jax.train.config import TrainConfig, apply_overrides
 
@@ -493,7 +504,9 @@ def run_study(exp, only: set[str] | None = None) -> dict:
     base = apply_overrides(TrainConfig(), spec.get("train", {}), f"{exp.source} [train]")
     output = Path(exp.output)
     (output / "cases").mkdir(parents=True, exist_ok=True)
-    ctx = Context(output, output, base, prepare=dict(_PREPARE, **spec.get("prepare", {})))
+    recorded = spec.get("sfm_recorded")
+    ctx = Context(output, output, base, prepare=dict(_PREPARE, **spec.get("prepare", {})),
+                  recorded=Path(recorded) if recorded else None)
     # the baseline first: the other training cases are judged against it
     cases = sorted(cases, key=lambda c: not c.get("baseline"))
     rows, failed = [], []

@@ -190,7 +190,7 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
 
 
 def _write_report(rows: list[dict], folder: Path, capture: Capture) -> None:
-    from ghsplat_jax.eval.report import markdown_table
+    from ghsplat_jax.experiments.report import markdown_table
 
     write_json(folder / "segments.json", {"capture": dataclasses.asdict(capture), "machine": machine_info(),
                                           "segments": rows})

@@ -20,7 +20,7 @@ Experiment file layout (see experiments/*.toml):
     count_of = "default"           # finished; its row in results.json if its folder is gone);
                                    # count_of defaults to "default"
     train = { strategy = "mcmc" }
-    reports = ["compactness"]      # extra reports (eval/compactness.py) beside results / table1 / charts
+    reports = ["compactness"]      # extra reports (experiments/compactness.py) beside results / table1 / charts
     [presets.quick]                # `--preset quick`; the file itself is the "full" preset
     train = { steps = 300 }        # merged over [train]; `scenes` / `variants` here replace the lists
 """
@@ -35,6 +35,7 @@ import re
 import traceback
 from pathlib import Path
 
+from ghsplat_jax.eval.evaluate import train_and_evaluate
 from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides
 from ghsplat_jax.train.run_dir import has_checkpoint, is_evaluated
 
@@ -55,6 +56,11 @@ class PlannedRun:
     @property
     def finished(self) -> bool:
         return is_evaluated(self.out_dir)
+
+    @property
+    def state(self) -> str:
+        """finished, interrupted (a checkpoint to resume from) or todo."""
+        return "finished" if self.finished else ("interrupted" if has_checkpoint(self.out_dir) else "todo")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +95,7 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
 
 
 _KEYS = {"name", "description", "output", "results", "kind", "prepare", "cases", "train", "scenes", "variants",
-         "reports"}
+         "reports", "sfm_recorded"}
 KINDS = ("train", "stability")
 
 
@@ -135,7 +141,7 @@ def load_experiment(path, output: str | os.PathLike | None = None, overrides: di
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}")
     spec = _apply_preset(spec, preset, path)
     name = spec.get("name", path.stem)
-    for key in ("name", "description", "output", "results", "kind"):
+    for key in ("name", "description", "output", "results", "kind", "sfm_recorded"):
         if not isinstance(spec.get(key, ""), str):
             raise ConfigError(f"{path}: '{key}' must be a string, got {spec[key]!r}")
     kind = spec.get("kind", "train")
@@ -227,28 +233,6 @@ def resolve_count(run: PlannedRun, runs: list[PlannedRun], reported: dict | None
     return dataclasses.replace(run, config=run.config.replace(max_surfels=cap))
 
 
-def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
-                       until: int | None = None) -> dict:
-    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
-    or when stopped early by `until`)."""
-    from ghsplat_jax.eval.evaluate import evaluate as evaluate_fn
-    from ghsplat_jax.eval.evaluate import test_curve_metrics
-    from ghsplat_jax.train import train
-    from ghsplat_jax.train.run_dir import load_training_data
-
-    if resume:  # a process killed mid-write leaves scratch folders beside the outputs
-        from ghsplat_jax.io_utils import remove_scratch
-
-        for p in remove_scratch(out_dir):
-            log.info("removed %s, left by an interrupted write", p)
-    dataset = dataset if dataset is not None else load_training_data(config)
-    test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
-    result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
-    if not evaluate or result.steps < config.resolved().steps:
-        return {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps}
-    return evaluate_fn(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps)
-
-
 def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported: dict | None = None) -> str | None:
     """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
     when interrupted. Returns None, or the error text (one broken scene must not stop the set).
@@ -288,7 +272,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
                    exclude: set[str] = frozenset()) -> dict:
     """Train every unfinished run (resuming interrupted ones), then write the reports.
     executor: "local" (one run after another in this process) or "ray" (one Ray task per run,
-    see eval/ray_executor.py; `ray_options` are its keyword arguments).
+    see experiments/ray_executor.py; `ray_options` are its keyword arguments).
     Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
     selected = [r for r in exp.runs if r.scene not in exclude
                 and (not only or r.scene in only or f"{r.scene}/{r.variant}" in only)]
@@ -299,7 +283,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     if executor not in ("local", "ray"):
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
     # Two waves: runs with a count_fraction need their reference's final count.
-    from ghsplat_jax.eval.report import RESULTS_NAME
+    from ghsplat_jax.experiments.report import RESULTS_NAME
 
     reported = {key: row["num_gaussians"] for key, row in _earlier_rows(Path(exp.results) / RESULTS_NAME).items()
                 if row.get("num_gaussians")}
@@ -312,7 +296,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
         else:
             import functools
 
-            from ghsplat_jax.eval.ray_executor import run_on_ray
+            from ghsplat_jax.experiments.ray_executor import run_on_ray
 
             failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs, reported=reported),
                                  stop_on_error=stop_on_error, **(ray_options or {}))
@@ -334,8 +318,8 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     """Rows of every finished run, and the reports written into the experiment folder. A planned
     run whose folder has no metrics.json (a long experiment's runs folder lost between machines
     or sessions) keeps its row from the last report, with a warning, rather than vanishing."""
-    from ghsplat_jax.eval.charts import write_charts, write_pareto_charts
-    from ghsplat_jax.eval.report import RESULTS_NAME, run_row, write_results, write_table1
+    from ghsplat_jax.experiments.charts import write_charts, write_pareto_charts
+    from ghsplat_jax.experiments.report import RESULTS_NAME, run_row, write_results, write_table1
 
     report = Path(exp.results) / RESULTS_NAME
     rows, earlier = [], _earlier_rows(report)
@@ -354,7 +338,7 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     reports = write_results(rows, exp.results, title) + write_table1(rows, exp.results, f"Table 1 ({name})")
     reports += write_charts(rows, exp.results, name) + write_pareto_charts(rows, exp.results, name)
     if "compactness" in exp.reports:
-        from ghsplat_jax.eval.compactness import write_compactness
+        from ghsplat_jax.experiments.compactness import write_compactness
 
         reports += write_compactness(rows, exp.results, name)
     return rows, reports

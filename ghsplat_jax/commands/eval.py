@@ -33,7 +33,7 @@ def main(args) -> int:
         print(f"{run}{at}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}, "
               f"{m['num_gaussians']} surfels, {m['render_seconds_per_view']:.3f} s/view")
     if args.report:
-        from ghsplat_jax.eval.report import collect_runs, write_table1
+        from ghsplat_jax.experiments.report import collect_runs, write_table1
 
         paths = write_table1(collect_runs(args.run_dir), args.report)
         print("report:", ", ".join(str(p) for p in paths))

@@ -146,7 +146,7 @@ def lines_figure(rows: list[dict], x: str, xlabel: str, title: str = ""):
 
 def write_compactness(rows: list[dict], folder, title: str = "") -> list[Path]:
     """compactness.{md,json,csv} and the three charts (each with its numbers as JSON beside it)."""
-    from ghsplat_jax.eval.report import csv_text
+    from ghsplat_jax.experiments.report import csv_text
 
     folder = Path(folder)
     rows = compare([run_facts(r) for r in rows])
