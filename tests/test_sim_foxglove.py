@@ -117,7 +117,7 @@ def test_foxglove_client_receives_the_simulators_image_and_cloud():
 def test_simulate_foxglove_flag_binds_loopback_by_default():
     import argparse
 
-    from ghsplat_jax.sim.command import add_arguments
+    from ghsplat_jax.commands.simulate import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -95,7 +95,7 @@ def _row(case: dict, method: str, ok: bool, error: str, detection: str, message:
 
 # ------------------------------------------------------------------------------------ SfM
 def _sfm_row(case: dict, r: dict, source: str) -> dict:
-    from ghsplat_jax.sfm.command import verdict
+    from ghsplat_jax.sfm.report import verdict
 
     rmse = r.get("centre_rmse_pct")
     code, message = verdict(r["status"], r.get("fold_reasons", []), r["registered"], r["views"], 0.9, "OUT")

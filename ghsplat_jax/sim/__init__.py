@@ -15,8 +15,8 @@
     simulate.py       the time-stamped sensor stream along a trajectory
     localize.py       AprilTag detection and localization evaluation
     viewer.py         viser web viewer
-    command.py, localize_command.py   `ghsplat simulate`, `ghsplat localize`
-    motion_args.py    their shared robot and trajectory options
+    motion_args.py    the robot and trajectory options of `ghsplat simulate` and `ghsplat localize`
+                      (commands/simulate.py, commands/localize.py)
 
 Heavy dependencies (jax rendering, rosbags, cyclonedds, cv2, viser) are imported by the
 modules that need them.

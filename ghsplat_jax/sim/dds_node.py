@@ -40,6 +40,9 @@ TOPICS = {
     "camera_info": "rt/camera_info", "lidar": "rt/lidar", "tf": "rt/tf", "tf_static": "rt/tf_static",
     "request": "rq/register_cameraRequest", "reply": "rr/register_cameraReply",
 }
+# topics of the simulated stream (sim.simulate.run) that the node publishes, by their TOPICS key
+_STREAM_TOPICS = {"/tf_static": "tf_static", "/tf": "tf", "/render": "render", "/camera_info": "camera_info",
+                  "/render_depth": "render_depth", "/lidar": "lidar"}
 
 
 def localhost_config(domain_id: int | None = None) -> str:
@@ -213,6 +216,12 @@ class SimNode:
         return scan
 
     # ------------------------------------------------------------------------- loop
+    def sink(self, topic: str, msg, t: float, payload=None) -> None:
+        """A sink for the simulated stream (sim.simulate.run): its messages of the node's
+        topics are published as they come; the others (e.g. /robot_pose) are not."""
+        if topic in _STREAM_TOPICS:
+            self.io.write(_STREAM_TOPICS[topic], D.to_dds(msg))
+
     def spin_once(self) -> int:
         return self._serve_requests() + self._serve_poses()
 

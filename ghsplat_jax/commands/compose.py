@@ -21,15 +21,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--summary", action="store_true", help="print a JSON summary (counts, footprints)")
 
 
-def default_tags_path(out: Path) -> Path:
-    return out.with_name(out.stem + ".tags.json")
-
-
 def main(args) -> int:
     from ghsplat_jax.scene.compose import compose
     from ghsplat_jax.scene.layout import load_layout
     from ghsplat_jax.data.ply import PlyError, save_ply
-    from ghsplat_jax.scene.tags import save_tags
+    from ghsplat_jax.scene.tags import save_tags, tags_beside
 
     out = Path(args.out)
     try:
@@ -42,7 +38,7 @@ def main(args) -> int:
         return 2
     save_ply(result.surfels, out, viewer_compatible=args.viewer_compatible)
     if result.tags:
-        tags_path = Path(args.tags) if args.tags else default_tags_path(out)
+        tags_path = Path(args.tags) if args.tags else tags_beside(out)
         save_tags(tags_path, result.tags)
         print(f"ghsplat compose: wrote {len(result.tags)} marker poses to {tags_path}", file=sys.stderr)
     print(f"ghsplat compose: wrote {out} ({result.surfels.num} surfels)", file=sys.stderr)

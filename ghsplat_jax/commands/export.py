@@ -7,8 +7,6 @@ import json
 import sys
 import warnings
 
-import numpy as np
-
 HELP = "clean, crop, rescale, rotate (SH included) and merge Gaussian PLYs; write 2DGS or 3DGS-viewer PLY, optionally a mesh"
 
 
@@ -60,100 +58,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     o.add_argument("--stats-out", metavar="STATS.json", help="write the statistics JSON here")
 
 
-def _hull_points(path: str) -> np.ndarray:
-    if path.lower().endswith(".ply"):
-        from ghsplat_jax.data.ply import read_vertices
+def options(args: argparse.Namespace):
+    """ExportOptions from parsed arguments."""
+    import dataclasses
 
-        v = read_vertices(path)
-        return np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
-    try:
-        return np.loadtxt(path, ndmin=2)[:, :3]
-    except (OSError, ValueError, IndexError) as exc:
-        raise ValueError(f"{path}: cannot read hull points ({exc})") from None
+    from ghsplat_jax.scene.export import ExportOptions
 
-
-def run(args) -> dict:
-    """Everything but argument parsing; returns the statistics dict."""
-    from ghsplat_jax.scene import edit, merge, stats, transform
-    from ghsplat_jax.data.ply import save_ply
-
-    # non-finite surfels are loaded here only to be dropped below, with a warning
-    parts, names = merge.load_many(args.inputs, allow_mixed_3dgs=args.allow_3dgs_mix, finite=False)
-    s = merge.merge(parts, args.sh_policy, names, degree=args.sh_degree)
-    keep = np.ones(s.num, bool)
-
-    def step(mask_fn, what):
-        nonlocal s
-        mask = mask_fn(s)
-        s, _ = edit.apply(s, mask, what)
-        keep[np.flatnonzero(keep)] = mask
-
-    bad = int((~edit.finite_mask(s)).sum())
-    if bad:
-        warnings.warn(f"dropped {bad} surfels with non-finite (NaN/Inf) values", stacklevel=2)
-    step(edit.finite_mask, "non-finite removal")
-    inside = lambda m: ~m if args.crop_remove else m
-    if args.crop_box:
-        step(lambda x: inside(edit.box_mask(x, args.crop_box[:3], args.crop_box[3:])), "crop box")
-    if args.crop_sphere:
-        step(lambda x: inside(edit.sphere_mask(x, args.crop_sphere[:3], args.crop_sphere[3])), "crop sphere")
-    if args.crop_hull:
-        pts = _hull_points(args.crop_hull)
-        step(lambda x: inside(edit.hull_mask(x, pts)), "convex-hull crop")
-    if args.min_opacity > 0:
-        step(lambda x: edit.opacity_mask(x, args.min_opacity), f"opacity threshold {args.min_opacity}")
-    if args.remove_floaters:
-        step(lambda x: edit.statistical_outlier_mask(x, std_ratio=args.floater_std), "outlier removal")
-        step(lambda x: edit.small_cluster_mask(x, args.cluster_radius, min_fraction=args.min_cluster_fraction),
-             "small-cluster removal")
-    scale = args.scale if args.scale is not None else (
-        transform.scale_from_length(*args.scale_from_length) if args.scale_from_length else 1.0)
-    M = transform.mirror_matrix(args.mirror) if args.mirror else np.eye(3)
-    if args.rotate:
-        M = transform.rotation_from_euler(args.rotate) @ M
-    if scale != 1.0 or args.mirror or args.rotate or args.translate:
-        s = transform.similarity(s, scale, M, args.translate)
-    info = stats.statistics(s)
-    info["removed"] = int((~keep).sum())
-    if args.stats or args.stats_out:
-        info["inputs"] = [{"path": n, **stats.statistics(p)} for n, p in zip(names, parts)]
-    else:
-        info["inputs"] = names
-    mesh = None
-    if args.mesh:  # before any write, so a failure leaves no output at all
-        from ghsplat_jax.scene.tsdf import mesh_from_surfels, save_mesh
-
-        voxel = args.mesh_voxel or float(np.ptp(np.percentile(s.means, [1, 99], axis=0), axis=0).max() / 200)
-        from ghsplat_jax.train.run_dir import raster_settings
-
-        # One input from a training run renders its mesh views with that run's settings.
-        run = raster_settings(args.inputs[0]) if len(args.inputs) == 1 else None
-        mesh = mesh_from_surfels(s, voxel, views_per_ring=args.mesh_views, config=run)
-        info["mesh"] = {"path": str(args.mesh), "vertices": len(mesh.vertices), "faces": len(mesh.faces),
-                        "voxel": voxel}
-    save_ply(s, args.out, viewer_compatible=args.viewer_compatible)
-    if mesh is not None:
-        save_mesh(mesh, args.mesh)
-    if args.removed_mask:
-        from ghsplat_jax.io_utils import atomic_write
-
-        with atomic_write(args.removed_mask) as fh:
-            np.save(fh, ~keep)
-    if args.stats_out:
-        from ghsplat_jax.io_utils import write_json
-
-        write_json(args.stats_out, info)
-    return info
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(ExportOptions) if hasattr(args, f.name)}
+    return ExportOptions(**given, input_stats=args.stats)
 
 
 def main(args) -> int:
     from ghsplat_jax.data.ply import PlyError
+    from ghsplat_jax.scene.export import export
 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always")
             warnings.showwarning = lambda msg, *a, **k: print(f"ghsplat export: warning: {msg}", file=sys.stderr)
-            info = run(args)
+            info = export(args.inputs, args.out, options(args))
     except (PlyError, ValueError, FileNotFoundError) as exc:
         print(f"ghsplat export: error: {exc}", file=sys.stderr)
         return 2

@@ -125,7 +125,7 @@ def main(args) -> int:
             node = SimNode(scene.surfels, domain_id=args.domain_id, localhost_only=not args.any_interface,
                            camera_renderer=renderer, lidar=lidar, lidar_frame=robot.lidar_frame,
                            publish_depth=args.depth, organised_cloud=args.organised)
-            sinks.append(_live_sink(node))
+            sinks.append(node.sink)
             say(f"live on DDS domain {args.domain_id} ({'any interface' if args.any_interface else 'loopback only'})")
         if args.foxglove:
             from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
@@ -181,15 +181,3 @@ def main(args) -> int:
         f"; camera compilations {renderer.traces}, LiDAR compilations {lidar.traces if lidar else 0}")
     return 0
 
-
-def _live_sink(node):
-    from ghsplat_jax.sim import dds_types as D
-
-    topics = {"/tf_static": "tf_static", "/tf": "tf", "/render": "render", "/camera_info": "camera_info",
-              "/render_depth": "render_depth", "/lidar": "lidar"}
-
-    def sink(topic, msg, t, payload):
-        if topic in topics:
-            node.io.write(topics[topic], D.to_dds(msg))
-
-    return sink

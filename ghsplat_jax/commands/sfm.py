@@ -13,14 +13,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tomllib
 from pathlib import Path
 
 HELP = "structure from motion (pycolmap) with greenhouse alignment and undistortion"
 
-EXIT_BAD_INPUT = 1
-EXIT_TOO_FEW_REGISTERED = 3
-EXIT_FOLDED = 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -109,38 +105,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def _load_align_config(path: Path | None) -> dict:
-    if path is None:
-        return {}
-    import json
-
-    try:
-        text = path.read_text()
-        config = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
-    except FileNotFoundError as exc:
-        raise ValueError(f"--align-config {path}: no such file") from exc
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"--align-config {path}: cannot parse ({exc})") from exc
-    config = config.get("align", config)  # allow an [align] table
-    allowed = {"rotation", "yaw_deg", "flip", "scale", "camera_height", "known_distance"}
-    unknown = set(config) - allowed
-    if unknown:
-        raise ValueError(f"--align-config {path}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
-    return config
-
-
 def build_options(args: argparse.Namespace):
     """SfmOptions from parsed arguments (the config file first, flags override it)."""
     import dataclasses
 
     import numpy as np
 
-    from ghsplat_jax.sfm.align import AlignOptions
+    from ghsplat_jax.sfm.align import AlignOptions, load_align_config
     from ghsplat_jax.sfm.disambiguate import DisambiguateOptions
     from ghsplat_jax.sfm.frames import FrameOptions
     from ghsplat_jax.sfm.pipeline import SfmOptions
 
-    config = _load_align_config(args.align_config)
+    config = load_align_config(args.align_config)
     rotation = args.align_rotation if args.align_rotation is not None else config.get("rotation")
     known = args.known_distance or config.get("known_distance")
     if known is not None:
@@ -181,7 +157,7 @@ def main(args: argparse.Namespace) -> int:
     import pycolmap
 
     from ghsplat_jax.sfm.pipeline import SfmError, run_sfm
-    from ghsplat_jax.sfm.report import summary_text
+    from ghsplat_jax.sfm.report import EXIT_BAD_INPUT, summary_text, verdict
 
     pycolmap.logging.minloglevel = 0 if args.verbose else 2  # 2: errors only
     try:
@@ -198,15 +174,3 @@ def main(args: argparse.Namespace) -> int:
     if message:
         print(message, file=sys.stderr)
     return code
-
-
-def verdict(status: str, fold_reasons: list[str], registered: int, num_images: int, needed: float,
-            out) -> tuple[int, str | None]:
-    """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status."""
-    if status == "ok":
-        return 0, None
-    if status == "folded":
-        return EXIT_FOLDED, (f"ghsplat sfm: the model looks folded ({'; '.join(fold_reasons)}); it is in {out} for "
-                             "inspection only: do not train on it (--no-fold-check to accept it)")
-    return EXIT_TOO_FEW_REGISTERED, (f"ghsplat sfm: only {registered} of {num_images} images registered "
-                                     f"(below --min-registered-fraction {needed})")
