@@ -49,7 +49,7 @@ def soak(frames: int = 10_000, rate: float = 100.0, surfels=None, width: int = 6
     from ghsplat_jax.sim import beams, simulate
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
     from ghsplat_jax.sim.lidar import Lidar
-    from ghsplat_jax.sim.recorder import BagRecorder
+    from ghsplat_jax.transport.recorder import BagRecorder
     from ghsplat_jax.sim.robot import Robot
 
     warmup = warmup if warmup is not None else max(frames // 10, 1)
@@ -68,7 +68,7 @@ def soak(frames: int = 10_000, rate: float = 100.0, surfels=None, width: int = 6
             sinks.append(lambda topic, msg, t, payload: bag.write(topic, msg, t))
             closers.append(lambda: bag.__exit__(None, None, None))
         if foxglove:
-            from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
+            from ghsplat_jax.transport.foxglove_sink import FoxgloveSink
 
             fox = FoxgloveSink(port=0)
             sinks.append(fox.sink)

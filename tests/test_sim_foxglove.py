@@ -50,7 +50,7 @@ def _decoder(channel: dict):
 
 def test_foxglove_client_receives_the_simulators_image_and_cloud():
     from ghsplat_jax.sim import messages as m
-    from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
+    from ghsplat_jax.transport.foxglove_sink import FoxgloveSink
 
     sim = _simulated_messages()
     sink = FoxgloveSink(port=0)  # 127.0.0.1, a free port

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tomllib
-from pathlib import Path
 
 from ghsplat_jax.sim import motion_args
 
@@ -30,11 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ghsplat_jax.io_utils import atomic_write, write_json
-    from ghsplat_jax.sim import localize, scene_io, simulate
-    from tqdm.auto import tqdm
-
+    from ghsplat_jax.localize import apriltag
+    from ghsplat_jax.localize.report import write_report
+    from ghsplat_jax.sim import scene_io
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
+    from ghsplat_jax.train.run_dir import raster_settings
 
     try:
         robot = motion_args.load_robot(args.robot)
@@ -47,26 +46,13 @@ def main(args) -> int:
         print(f"ghsplat localize: error: {exc}", file=sys.stderr)
         return 2
     tags = {t.id: t for t in scene.tags}
-    cfg = simulate.SimConfig(camera_rate=args.rate, lidar_rate=0.0, max_events=args.max_frames)
-    from ghsplat_jax.train.run_dir import raster_settings
-
     renderer = CameraRenderer(raster_config=raster_settings(scene.path))  # a trained run's own settings
-
-    def frames_iter():
-        for ev in tqdm(simulate.schedule(traj, cfg), desc="localize", unit="frame", dynamic_ncols=True):
-            x, y, yaw = ev.pose
-            yield ev.t, (x, y, yaw), renderer.render(scene.surfels, camera, robot.map_from_optical(x, y, yaw), ev.t)
-
-    result = localize.evaluate(frames_iter(), tags, robot)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    frames = apriltag.frames_along(scene.surfels, robot, traj, camera, renderer, args.rate, args.max_frames)
+    result = apriltag.evaluate(frames, tags, robot)
     result["config"] = {"scene": str(scene.path), "tags": len(tags), "width": args.width, "height": args.height,
                         "fov_deg": args.fov, "rate_hz": args.rate, "camera_mount_xyz": list(robot.camera.xyz),
                         "camera_mount_rpy": list(robot.camera.rpy), "compilations": renderer.traces}
-    write_json(out / "localization.json", result)
-    localize.plot(result, out / "localization.png")
-    with atomic_write(out / "report.md", "w") as fh:
-        fh.write(localize.markdown(result, f"AprilTag localization: {scene.path.name}", "localization.png"))
+    out = write_report(result, args.out, f"AprilTag localization: {scene.path.name}")
     s = result["summary"]
     pe = s["position_error_m"]["median"]
     print(f"ghsplat localize: {s['frames']} frames, availability {s['availability']:.0%}, "

@@ -82,7 +82,7 @@ def main(args) -> int:
                 pattern = pattern.replace(noise_std=args.range_noise)
         camera = CameraModel.from_fov(robot.optical_frame, args.width, args.height, args.fov)
         if args.record:
-            from ghsplat_jax.sim.recorder import bag_dir
+            from ghsplat_jax.transport.recorder import bag_dir
 
             if bag_dir(args.record).exists() and not args.overwrite:
                 raise FileExistsError(f"{bag_dir(args.record)}: already exists (use --overwrite)")
@@ -115,12 +115,12 @@ def main(args) -> int:
     recorder = node = viewer = bar = fox = None
     try:
         if args.record:
-            from ghsplat_jax.sim.recorder import BagRecorder
+            from ghsplat_jax.transport.recorder import BagRecorder
 
             recorder = BagRecorder(args.record, overwrite=args.overwrite).__enter__()
             sinks.append(lambda topic, msg, t, payload: recorder.write(topic, msg, t))
         if args.live:
-            from ghsplat_jax.sim.dds_node import SimNode
+            from ghsplat_jax.transport.dds_node import SimNode
 
             node = SimNode(scene.surfels, domain_id=args.domain_id, localhost_only=not args.any_interface,
                            camera_renderer=renderer, lidar=lidar, lidar_frame=robot.lidar_frame,
@@ -128,13 +128,13 @@ def main(args) -> int:
             sinks.append(node.sink)
             say(f"live on DDS domain {args.domain_id} ({'any interface' if args.any_interface else 'loopback only'})")
         if args.foxglove:
-            from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
+            from ghsplat_jax.transport.foxglove_sink import FoxgloveSink
 
             fox = FoxgloveSink(host=args.host, port=args.port)
             sinks.append(fox.sink)
             say(f"Foxglove WebSocket at ws://{args.host}:{fox.port}")
         if args.viewer:
-            from ghsplat_jax.sim.viewer import SimViewer
+            from ghsplat_jax.transport.viewer import SimViewer
 
             viewer = SimViewer(scene, robot, port=args.viewer_port)
             sinks.append(viewer.sink)
