@@ -104,7 +104,7 @@ def finished_run(scene, tmp_path_factory):
 
 
 def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
-    """raster_ablation imports its sibling raster_speed: `ghsplat bench` must put benchmarks/ on the path."""
+    """raster_ablation imports speed/raster_speed and record.py: `ghsplat bench` must put benchmarks/ on the path."""
     proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
                    "--tiles", "8", "--chunks", "16", "--variants", "box3,logspace-autodiff", "--results", tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.data.perturb import perturb_poses
-from ghsplat_jax.experiments.runner import load_experiment
 from ghsplat_jax.experiments import stability
+from ghsplat_jax.experiments.runner import load_experiment
+from ghsplat_jax.io_utils import json_safe
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
@@ -135,7 +136,7 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
     rerun = stability.run_study(exp, only={"sparse"})
     assert [r["case"] for r in rerun["rows"]] == ["ident", "sparse", "broken"]
     assert rerun["rows"][1]["seconds"] != rows["sparse"]["seconds"]  # computed again (new key)
-    assert rerun["rows"][0] == json.loads(json.dumps(stability._clean(rows["ident"])))
+    assert rerun["rows"][0] == json.loads(json.dumps(json_safe(rows["ident"])))
     assert len(json.loads((tmp_path / "results" / "stability.json").read_text())["rows"]) == 3
 
 

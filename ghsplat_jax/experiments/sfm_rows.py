@@ -2,7 +2,7 @@
 own stages (extract, match, then per `--disambiguate` method filter, map and fold-check, exactly as
 `ghsplat sfm` does) and score the best model against the true cameras.
 
-Used by benchmarks/sfm_disambiguation.py and the stability study (experiments/stability.py).
+Used by benchmarks/robustness/sfm_disambiguation.py and the stability study (experiments/stability.py).
 """
 
 from __future__ import annotations

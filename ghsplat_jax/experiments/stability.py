@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.io_utils import atomic_write, machine_info, save_figure, write_json
+from ghsplat_jax.io_utils import atomic_write, json_safe, machine_info, save_figure, write_json
 
 log = logging.getLogger("ghsplat.stability")
 
@@ -536,7 +536,7 @@ def run_study(exp, only: set[str] | None = None) -> dict:
                 continue
             for r in got:
                 r.setdefault("seconds", time.perf_counter() - start)
-            write_json(cache, {"key": key, "rows": _clean(got)})
+            write_json(cache, {"key": key, "rows": json_safe(got)})
         if case.get("baseline") and got:
             ctx.baseline_psnr = got[0].get("test_psnr")
         rows.extend(got)
@@ -553,18 +553,6 @@ def _reported_rows(exp) -> list[dict]:
     """Rows of the last written report (RESULTS/stability.json), [] without one."""
     path = Path(exp.results) / "stability.json"
     return json.loads(path.read_text())["rows"] if path.is_file() else []
-
-
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _clean(obj.item())
-    return obj
 
 
 # ------------------------------------------------------------------------------- reports
@@ -602,12 +590,12 @@ def write_reports(rows: list[dict], exp, spec: dict) -> list[Path]:
                           "(rgb and alpha; the dense reference gets the scene without the invalid surfels)"}
     report = {"experiment": exp.name, "preset": exp.preset, "source": str(exp.source), "machine": machine_info(),
               "criteria": criteria, "prepare": dict(_PREPARE, **spec.get("prepare", {})), "train": train,
-              "summary": s, "rows": _clean(rows)}
+              "summary": s, "rows": json_safe(rows)}
     paths = [write_json(results / "stability.json", report)]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(COLUMNS) + sorted({k for r in rows for k in r} - set(COLUMNS)))
     writer.writeheader()
-    writer.writerows(_clean(rows))
+    writer.writerows(json_safe(rows))
     with atomic_write(results / "stability.csv", "w") as fh:
         fh.write(buffer.getvalue())
     paths.append(results / "stability.csv")

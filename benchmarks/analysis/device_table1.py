@@ -1,7 +1,7 @@
 """Train Table 1 segments side by side on one lent GPU inside one command's time limit.
 
-    python benchmarks/device_table1.py --segments row0_x1,row2_x0 --end EPOCH_SECONDS --out DIR
-    python benchmarks/device_table1.py --summarize DIR --name NAME   # here, on what came back
+    python benchmarks/analysis/device_table1.py --segments row0_x1,row2_x0 --end EPOCH_SECONDS --out DIR
+    python benchmarks/analysis/device_table1.py --summarize DIR --name NAME   # here, on what came back
 
 Each run is one `ghsplat run EXPERIMENT --preset gpu --only SEG/VARIANT` process. `--parallel`
 of the segments' default variants start at once (all by default): one training step at 192x144
@@ -34,8 +34,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from run_progress import read_jsonl
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
+from analysis.run_progress import read_jsonl  # noqa: E402
 from ghsplat_jax.train.run_dir import is_evaluated
 
 TICK_S = 10.0
@@ -159,19 +160,13 @@ def write_status(args, runs: list[Run], events: list, machine: dict) -> None:
 
 
 def machine_facts() -> dict:
-    facts = {"python": sys.version.split()[0]}
+    """The machine record with the GPUs nvidia-smi lists; JAX's backend stays unstarted here, so
+    this process never claims the GPU its training children use."""
     try:
-        facts["gpu"] = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout.strip()
+        gpu = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout.strip()
     except (OSError, subprocess.SubprocessError) as exc:
-        facts["gpu"] = f"nvidia-smi failed: {exc}"
-    try:
-        import jax
-
-        facts["jax"] = jax.__version__
-    except ImportError:
-        pass
-    facts["cpus"] = os.cpu_count()
-    return facts
+        gpu = f"nvidia-smi failed: {exc}"
+    return machine_record(start_backend=False, gpu=gpu)
 
 
 def rate_windows(stats: Path, window_s: float = 30.0) -> list[dict]:
@@ -194,7 +189,7 @@ def summarize(folder: Path, name: str) -> Path:
     report = {"status": json.loads(status.read_text()) if status.is_file() else None, "runs": {}}
     for stats in sorted(folder.glob("*/*/stats.jsonl")):
         report["runs"][f"{stats.parent.parent.name}/{stats.parent.name}"] = rate_windows(stats)
-    out = Path(__file__).resolve().parent / "results" / f"{name}.json"
+    out = RESULTS / f"{name}.json"
     out.write_text(json.dumps(report, indent=1) + "\n")
     return out
 

@@ -1,6 +1,6 @@
 """Re-time an experiment's variants in one process, interleaved, and redraw its Pareto charts.
 
-    python benchmarks/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 8]
+    python benchmarks/speed/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 8]
 
 `ghsplat run` records each run's median step time as it trained, so runs trained at different
 times (or beside other jobs) carry different machine loads. Here every variant's training step is
@@ -17,14 +17,17 @@ import dataclasses
 import json
 import os
 from pathlib import Path
+import sys
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import machine_record  # noqa: E402
+from speed.train_speed import time_steps  # noqa: E402
 from ghsplat_jax.experiments.charts import write_pareto_charts
-from ghsplat_jax.io_utils import machine_info, write_json
+from ghsplat_jax.io_utils import write_json
 from ghsplat_jax.train.config import load_config
 from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, CONFIG_NAME, load_training_data
-from train_speed import time_steps  # noqa: E402  (benchmarks/ is the script's folder)
 
 
 def main(argv=None) -> int:
@@ -45,7 +48,7 @@ def main(argv=None) -> int:
         timing[scene] = timed
         charted += [dict(r, interleaved_step_seconds=timed[v]["seconds_per_step"],
                          interleaved_cpu_seconds=timed[v]["cpu_seconds_per_step"]) for v, r in runs.items()]
-    write_json(args.results / "step_timing.json", {"machine": machine_info(), "steps_timed": args.steps,
+    write_json(args.results / "step_timing.json", {"machine": machine_record(), "steps_timed": args.steps,
                                                    "split": args.split, "scenes": timing})
     write_pareto_charts(charted, args.results, cost="interleaved_step_seconds", stem="pareto_interleaved",
                         title="step time re-measured interleaved")
@@ -64,7 +67,7 @@ def write_markdown(path: Path, rows: list[dict], steps: int) -> None:
     with atomic_write(path, "w") as fh:
         fh.write(f"# Step time re-measured interleaved ({steps} steps per variant, medians)\n\n"
                  "Each variant's step from its own final checkpoint, one step of each in turn in one process "
-                 "(benchmarks/ablation_timing.py); `logged` is the median the run logged while it trained.\n\n"
+                 "(benchmarks/speed/ablation_timing.py); `logged` is the median the run logged while it trained.\n\n"
                  + markdown_table(table, ("scene", "variant", "psnr", "num_gaussians", "logged", "wall", "cpu"),
                                   ("scene", "variant", "test PSNR (dB)", "surfels", "logged step s",
                                    "interleaved step s", "interleaved CPU s")))

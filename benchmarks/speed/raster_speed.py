@@ -1,6 +1,6 @@
 """Rasterizer speed and memory: forward and forward+backward against the naive baseline.
 
-    python benchmarks/raster_speed.py [--quick] [--sizes 256x256 ...] [--counts 20000 ...]
+    python benchmarks/speed/raster_speed.py [--quick] [--sizes 256x256 ...] [--counts 20000 ...]
 
 Scenes are random surfels of typical trained size (3-sigma radius of a few pixels) in front
 of the camera. Every variant is compiled and warmed up first; times are medians of repeats;
@@ -15,6 +15,7 @@ import functools
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -24,11 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
-from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
+from ghsplat_jax.raster.render import binning_config, capacity_bucket, count_pairs
 
-RESULTS = Path(__file__).parent / "results"
 VARIANTS = {
     "carried, tight bounds (default)": gs.RasterConfig(),
     "carried, 3-sigma boxes": gs.RasterConfig(bounds="box3"),
@@ -97,7 +99,7 @@ def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[
     rows, fns = [], {}
     for name in variants:
         cfg = VARIANTS[name]
-        pairs, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg)))
+        pairs, fullest = (int(x) for x in count_pairs(s, cam, binning_config(cfg)))
         capacity = capacity_bucket(pairs)
         slots = max(32, 1 << max(fullest - 1, 0).bit_length())
         row = dict(variant=name, width=width, height=height, surfels=n, tile_size=cfg.tile_size, pairs=pairs,
@@ -194,9 +196,7 @@ def main():
                     f"forward_cpu_speedup_vs_{label}": base["forward_cpu_s"] / r["forward_cpu_s"],
                     f"forward_backward_cpu_speedup_vs_{label}":
                         base["forward_backward_cpu_s"] / r["forward_backward_cpu_s"]})
-    result = dict(machine=dict(platform=platform.platform(), processor=platform.processor(),
-                               cpus=os.cpu_count(), device=str(jax.devices()[0]),
-                               jax=jax.__version__, exp_rate_per_s=exp_rate()),
+    result = dict(machine=machine_record(exp_rate_per_s=exp_rate()),
                   rows=rows, speedups=summary)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

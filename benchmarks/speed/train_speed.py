@@ -1,17 +1,17 @@
 """Seconds per training step in windows of the real 30k schedule, old rasterizer settings against new.
 
-    python benchmarks/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
-    python benchmarks/train_speed.py --scene fern            # from initialisation (step 0)
-    python benchmarks/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
-    python benchmarks/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
-    python benchmarks/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live pairs
-    python benchmarks/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
-    python benchmarks/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
-    python benchmarks/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
-    python benchmarks/train_speed.py --config C --checkpoint K --compare rev-interleaved --rev HEAD  # the same, one process
-    python benchmarks/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
-    python benchmarks/train_speed.py --config C --checkpoint K --compare threads  # one program vs two threads
-    python benchmarks/train_speed.py --config C --checkpoint K --compare partbatch  # threads' batches of 128 vs 32
+    python benchmarks/speed/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
+    python benchmarks/speed/train_speed.py --scene fern            # from initialisation (step 0)
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live pairs
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare rev-interleaved --rev HEAD  # the same, one process
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare threads  # one program vs two threads
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare partbatch  # threads' batches of 128 vs 32
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -50,7 +50,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -61,10 +60,12 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, ROOT, machine_record  # noqa: E402
+from speed.raster_speed import exp_rate  # noqa: E402
 from ghsplat_jax import host_memory
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.paths import datasets_root
@@ -72,10 +73,7 @@ from ghsplat_jax.train import trainer
 from ghsplat_jax.train.config import TrainConfig, load_config, save_config
 from ghsplat_jax.train.run_dir import load_training_data
 from ghsplat_jax.train.state import fit_pool
-from raster_speed import exp_rate  # noqa: E402  (benchmarks/ is the script's folder)
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = Path(__file__).parent / "results"
 SCENES = {"fern": TrainConfig(data="llff_fern", downscale=8.0),
           "lego": TrainConfig(data="nerf_synthetic_lego", downscale=2.0).replace(background=(1.0, 1.0, 1.0))}
 PREVIOUS = dict(compositor="logspace", bounds="box3", batch_chunks=16)  # how training rendered before
@@ -100,7 +98,7 @@ def refit_pairs(session) -> None:
     session.pair_capacity = trainer.pair_bucket(needed)
 
 
-def _session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
+def compiled_session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
     """A training session at `checkpoint` (or initialisation), `transform(session)` applied, compiled."""
     return _compiled(trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False), checkpoint, transform)
 
@@ -138,7 +136,7 @@ def time_steps(configs: dict, dataset, checkpoint: Path | dict | None, steps: in
     sessions = {}
     for name, cfg in configs.items():
         with within(name):
-            sessions[name] = _session(cfg, dataset, checkpoints[name], transforms.get(name))
+            sessions[name] = compiled_session(cfg, dataset, checkpoints[name], transforms.get(name))
     return time_sessions(sessions, steps, within)
 
 
@@ -175,7 +173,9 @@ def time_children(args, variants: dict, rounds: int = 2) -> dict:
     samples, facts = {name: [] for name in variants}, {}
     for _ in range(rounds):
         for name, (tree, env) in variants.items():
-            cmd = [sys.executable, str(Path(tree) / "benchmarks" / "train_speed.py"), "--child", "--steps",
+            script = next(p for p in (Path(tree) / "benchmarks" / "speed" / "train_speed.py",
+                                      Path(tree) / "benchmarks" / "train_speed.py") if p.is_file())  # older trees
+            cmd = [sys.executable, str(script), "--child", "--steps",
                    str(args.steps), "--scene", args.scene]
             cmd += [flag for flag, value in (("--config", args.config), ("--checkpoint", args.checkpoint)) if value
                     for flag in (flag, str(Path(value).resolve()))]
@@ -278,7 +278,7 @@ def main(argv=None) -> int:
         with checkout(args.rev) as tree:
             rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, check=True, capture_output=True,
                                  text=True).stdout.strip()
-            sessions = {"previous": rev_session(tree, args, checkpoint), "current": _session(config, dataset, checkpoint)}
+            sessions = {"previous": rev_session(tree, args, checkpoint), "current": compiled_session(config, dataset, checkpoint)}
         rows = time_sessions(sessions, args.steps)
         previous = f"the code of revision {rev} ({args.rev}), in the same process, steps interleaved"
     elif args.compare == "xla":
@@ -323,7 +323,7 @@ def main(argv=None) -> int:
     path = RESULTS / "train_speed.json"
     results = json.loads(path.read_text()) if path.is_file() else {}
     results.setdefault("windows", {})[label] = window
-    results["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__)
+    results["machine"] = machine_record()
     write_json(path, results)
     chart(results["windows"], RESULTS / "train_speed.png")
     print(json.dumps({label: {k: window[k] for k in ("speedup", "cpu_speedup", "exp_rate_per_s")}}, indent=1))

@@ -3,7 +3,7 @@ images, e.g. NeRF-synthetic lego): rendered alpha over the pixels whose image al
 next to each test view's PSNR. A model that fills the background with surfels of the
 background colour scores well on its training views and hides the object from new ones.
 
-    python benchmarks/background_coverage.py runs/lego30k --name lego_background_unmasked
+    python benchmarks/analysis/background_coverage.py runs/lego30k --name lego_background_unmasked
 
 `normal_loss_alpha_mask` is recorded as null for a run whose config predates the setting (its
 code had no mask).
@@ -17,16 +17,18 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+import sys
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 from ghsplat_jax.eval.metrics import COVERED_ABOVE, EMPTY_BELOW, background_cover, image_metrics
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster.render import render
 from ghsplat_jax.train.config import settings_missing_from
 from ghsplat_jax.train.run_dir import CONFIG_NAME, load_run, load_training_data
 
-RESULTS = Path(__file__).parent / "results"
 PANEL_VIEWS = 3
 
 
@@ -71,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
                   finished=finished, surfels=int(surfels.num), config_predates=predates,
                   normal_loss_alpha_mask=None if "normal_loss_alpha_mask" in predates else config.normal_loss_alpha_mask,
                   lambda_normal=config.lambda_normal, empty_below=EMPTY_BELOW, covered_above=COVERED_ABOVE, mean=mean,
-                  views=per_view)
+                  views=per_view, machine=machine_record())
     RESULTS.mkdir(exist_ok=True)
     write_json(RESULTS / f"{args.name}.json", result)
     worst = np.argsort([v["psnr"] for v in per_view])[:PANEL_VIEWS]

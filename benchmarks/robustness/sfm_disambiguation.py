@@ -8,7 +8,7 @@ as `ghsplat sfm` does. Per case and method: registered views, camera-centre RMSE
 max as % of the extent (Umeyama similarity to the true cameras), rotation error,
 whether the fold check flagged the model, the resulting status, and seconds.
 
-    JAX_PLATFORMS=cpu nice -n 10 .venv/bin/python benchmarks/sfm_disambiguation.py [--quick]
+    JAX_PLATFORMS=cpu nice -n 10 .venv/bin/python benchmarks/robustness/sfm_disambiguation.py [--quick]
 
 Writes benchmarks/results/sfm_disambiguation/{results.json, results.csv, table.md,
 errors.png}. Rows of results.json carry "case", "method", "centre_rmse_pct",
@@ -22,20 +22,17 @@ import csv
 import dataclasses
 import io
 import os
-import platform
 import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from sfm_speed import _clean
-
-from ghsplat_jax.io_utils import atomic_write, save_figure, write_json
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
+from ghsplat_jax.io_utils import atomic_write, json_safe, save_figure, write_json
 from ghsplat_jax.experiments.sfm_rows import Case
 from ghsplat_jax.experiments.sfm_rows import run_case as _run_case
 
-RESULTS = Path(__file__).resolve().parent / "results" / "sfm_disambiguation"
+RESULTS = RESULTS / "sfm_disambiguation"
 
 
 CASES = [  # hand-held views: about 0.22 m apart at an even pace unless named "sparse"
@@ -153,9 +150,7 @@ def main() -> int:
         cases = [c for c in CASES if c.name in {r["case"] for r in rows}]
     report = {
         "benchmark": "sfm_disambiguation",
-        "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                    "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                    "load_average_at_start": list(load_start), "load_average_at_end": list(os.getloadavg())},
+        "machine": machine_record(load_average_at_start=list(load_start)),
         "versions": {"pycolmap": pycolmap.__version__, "colmap": pycolmap.COLMAP_version},
         "image_size": [args.width, args.height],
         "cases": [dataclasses.asdict(c) for c in cases],
@@ -166,13 +161,13 @@ def main() -> int:
         "rows": rows,
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / "results.json", _clean(report))
+    write_json(RESULTS / "results.json", json_safe(report))
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=[c for c in (*COLUMNS, "rotation_mean_deg",
                             "identical", "path", "video", "seed", "plants", "image_size",
                             "extraction_s", "matching_s", "filter_and_map_s")], extrasaction="ignore")
     writer.writeheader()
-    writer.writerows(_clean(rows))
+    writer.writerows(json_safe(rows))
     with atomic_write(RESULTS / "results.csv", "w") as fh:
         fh.write(buffer.getvalue())
     with atomic_write(RESULTS / "table.md", "w") as fh:

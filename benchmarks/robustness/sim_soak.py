@@ -5,15 +5,13 @@ Foxglove server). Memory must stay flat: growth of at most 5% after warm-up.
 Samples RSS (psutil) every few frames; growth = (largest RSS after warm-up - RSS at the end of
 warm-up) / RSS at the end of warm-up. Writes benchmarks/results/sim_soak.json and .png.
 
-    JAX_PLATFORMS=cpu python benchmarks/sim_soak.py --frames 10000
+    JAX_PLATFORMS=cpu python benchmarks/robustness/sim_soak.py --frames 10000
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -21,11 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
+
 
 def small_scene(n: int = 5_000, seed: int = 0):
     """Two rows of leaf-like surfels beside an aisle at y = 0, on a floor (sim_speed's recipe, smaller)."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from sim_speed import greenhouse_surfels
+    from speed.sim_speed import greenhouse_surfels
 
     return greenhouse_surfels(n, seed)
 
@@ -49,8 +49,8 @@ def soak(frames: int = 10_000, rate: float = 100.0, surfels=None, width: int = 6
     from ghsplat_jax.sim import beams, simulate
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
     from ghsplat_jax.sim.lidar import Lidar
-    from ghsplat_jax.transport.recorder import BagRecorder
     from ghsplat_jax.sim.robot import Robot
+    from ghsplat_jax.transport.recorder import BagRecorder
 
     warmup = warmup if warmup is not None else max(frames // 10, 1)
     robot = Robot()
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--foxglove", action="store_true", help="also serve the topics with a Foxglove server")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sim_soak"))
+    ap.add_argument("--out", default=str(RESULTS / "sim_soak"))
     args = ap.parse_args(argv)
 
     import jax
@@ -119,9 +119,7 @@ def main(argv=None) -> int:
                foxglove=args.foxglove)
     res.update(surfels=args.surfels, width=args.width, height=args.height, foxglove=args.foxglove, limit=0.05,
                passed=res["growth"] <= 0.05)
-    out = {"benchmark": "sim_soak", "machine": platform.machine(), "python": sys.version.split()[0],
-           "jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count(),
-           "load_average": os.getloadavg()[0], "result": res,
+    out = {"benchmark": "sim_soak", "machine": machine_record(), "result": res,
            "notes": "RSS sampled every 50 camera frames while a rosbag2 (MCAP) is recorded; growth is the largest "
                     "RSS after warm-up relative to the RSS at the end of warm-up (the first 10% of frames)"}
     write_json(args.out + ".json", out)

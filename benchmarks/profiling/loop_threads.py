@@ -1,6 +1,6 @@
 """Does XLA:CPU run independent loops side by side? One program, two host devices, two threads.
 
-    python benchmarks/loop_threads.py [--rows 256] [--iterations 2000] [--repeats 7]
+    python benchmarks/profiling/loop_threads.py [--rows 256] [--iterations 2000] [--repeats 7]
 
 The compositor's loop bodies are mostly single-threaded (fusion_profile.py), so a second core
 could only help if two loops ran at once. Times, interleaved and as medians of wall and CPU
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import threading
@@ -31,9 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 from ghsplat_jax.io_utils import write_json
 
-RESULTS = Path(__file__).parent / "results"
 
 
 def body(i, state):
@@ -110,8 +110,7 @@ def main(argv=None) -> int:
     base = rows["one loop of 2n"]["seconds"]
     for row in rows.values():
         row["speedup"] = base / row["seconds"]
-    result = dict(rows=rows, plane=[args.rows, 64], iterations=args.iterations, load_average=os.getloadavg(),
-                  machine=dict(platform=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__))
+    result = dict(rows=rows, plane=[args.rows, 64], iterations=args.iterations, machine=machine_record())
     write_json(RESULTS / "loop_threads.json", result)
     print(json.dumps({k: {m: round(v[m], 3) for m in ("seconds", "cpu_seconds", "speedup")} for k, v in rows.items()},
                      indent=1))

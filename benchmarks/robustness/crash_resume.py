@@ -9,7 +9,7 @@ checkpoint write so that this window can be hit on purpose). After every kill th
 on disk must be whole (readable, at a checkpoint step). Writes benchmarks/results/crash_resume.json
 and .png.
 
-    JAX_PLATFORMS=cpu python benchmarks/crash_resume.py --kills 20
+    JAX_PLATFORMS=cpu python benchmarks/robustness/crash_resume.py --kills 20
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -46,7 +45,8 @@ from ghsplat_jax.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, ROOT, machine_record  # noqa: E402
 
 
 def tiny_run_inputs(folder: Path, steps: int, checkpoint_every: int) -> tuple[Path, Path]:
@@ -155,7 +155,7 @@ def main(argv=None) -> int:
     ap.add_argument("--kills", type=int, default=20)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--seed", type=int, default=15)
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "crash_resume"))
+    ap.add_argument("--out", default=str(RESULTS / "crash_resume"))
     args = ap.parse_args(argv)
 
     from ghsplat_jax.io_utils import save_figure, write_json
@@ -165,9 +165,8 @@ def main(argv=None) -> int:
         data, config = tiny_run_inputs(Path(tmp), args.steps, 4)
         res = kill_and_resume(data, config, Path(tmp) / "run", moments, args.steps, 4, args.seed)
     res.update(seed=args.seed)
-    write_json(args.out + ".json", {"benchmark": "crash_resume", "machine": platform.machine(),
-                                    "python": sys.version.split()[0], "cpu_count": os.cpu_count(),
-                                    "load_average": os.getloadavg()[0], "result": res})
+    write_json(args.out + ".json", {"benchmark": "crash_resume", "machine": machine_record(start_backend=False),
+                                    "result": res})
     print(json.dumps({k: v for k, v in res.items() if k != "kills"}))
 
     from matplotlib.figure import Figure

@@ -7,7 +7,7 @@
  * pair-pixel of each loop. Evidence for the decision in the README ("What bounds it"), not part
  * of the package: the rasterizer stays JAX.
  *
- *   gcc -O3 -march=native -ffast-math -fopenmp-simd -o /tmp/ncb benchmarks/native_compositor_bound.c -lm && /tmp/ncb
+ *   gcc -O3 -march=native -ffast-math -fopenmp-simd -o /tmp/ncb benchmarks/profiling/native_compositor_bound.c -lm && /tmp/ncb
  *
  * Prints one JSON object. Synthetic pairs at fern step 1,250's scale: 24M pair-pixels a pass.
  */

@@ -11,7 +11,7 @@ the 2-core CPU. Measures, on the default scene:
 Writes benchmarks/results/synth_speed.json and .png. The CPU is shared: the load average
 at start and end is recorded, and CPU seconds are reported beside wall seconds.
 
-    JAX_PLATFORMS=cpu .venv/bin/python benchmarks/synth_speed.py [--repeats 3] [--views 40]
+    JAX_PLATFORMS=cpu .venv/bin/python benchmarks/speed/synth_speed.py [--repeats 3] [--views 40]
 """
 
 from __future__ import annotations
@@ -21,12 +21,15 @@ import dataclasses
 import os
 import platform
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
 BUDGET_S = 120.0
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 
 
 def timed(fn, *args, **kwargs):
@@ -103,8 +106,7 @@ def main() -> None:
         "capture_median_cpu_s": statistics.median(c["cpu_s"] for c in captures),
         "within_budget": median_wall < BUDGET_S,
         "per_view_render_s": per_view,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": platform.processor(),
-                    "loadavg_start": load_start, "loadavg_end": os.getloadavg()},
+        "machine": machine_record(loadavg_start=load_start, loadavg_end=os.getloadavg()),
         "versions": versions(),
     }
     from ghsplat_jax.io_utils import write_json
@@ -137,7 +139,7 @@ def chart(result: dict, path: Path) -> None:
     b.set_xlabel("seconds per view (render only, median)")
     b.set_title(f"renderer options, {result['scene_faces']} faces", fontsize=9)
     fig.suptitle(f"ghsplat synth speed (load avg {result['machine']['loadavg_start'][0]:.1f} "
-                 f"on {result['machine']['cpus']} CPUs)", fontsize=10)
+                 f"on {result['machine']['cpu_count']} CPUs)", fontsize=10)
     fig.tight_layout()
     with atomic_write(path, "wb") as fh:
         fig.savefig(fh, format="png", dpi=110)

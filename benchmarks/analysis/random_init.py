@@ -1,7 +1,7 @@
 """Random initialisation: tile-surfel pairs (the cost of a step) and training PSNR over the
 first steps of the real schedule, for several `random_init_scale` factors.
 
-    python benchmarks/random_init.py --data nerf_synthetic_lego --downscale 4 --steps 600 --scales 1.0 0.5
+    python benchmarks/analysis/random_init.py --data nerf_synthetic_lego --downscale 4 --steps 600 --scales 1.0 0.5
 
 Each factor trains `ghsplat train --until STEPS` in RUNS/scale_F (a finished run is reused) on a
 white background, from the same seed. Pairs are counted by the rasterizer at every step, so they
@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 
 
 def train(data: str, downscale: float, steps: int, scale: float, out: Path) -> None:
@@ -57,7 +57,8 @@ def main(argv=None) -> int:
 
     from ghsplat_jax.io_utils import save_figure, write_json
 
-    result = {"data": args.data, "downscale": args.downscale, "steps": args.steps, "cpu_count": os.cpu_count(),
+    result = {"data": args.data, "downscale": args.downscale, "steps": args.steps,
+              "machine": machine_record(start_backend=False),
               "note": "train-view PSNR and rasterizer pairs per 100-step window; pairs do not depend on load",
               "runs": {}}
     for scale in args.scales:

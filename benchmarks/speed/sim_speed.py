@@ -5,7 +5,7 @@ Poses change every frame (the robot drives down an aisle), the functions compile
 (warm-up, then `traces` must stay 1: no recompilation per frame), and we report the
 median of several repeats. Writes benchmarks/results/sim_speed.json and .png.
 
-    JAX_PLATFORMS=cpu python benchmarks/sim_speed.py --sizes 100000 400000 --repeats 3
+    JAX_PLATFORMS=cpu python benchmarks/speed/sim_speed.py --sizes 100000 400000 --repeats 3
 """
 
 from __future__ import annotations
@@ -13,12 +13,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 
 
 def greenhouse_surfels(n: int, seed: int = 0):
@@ -112,7 +114,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lidar-variants", nargs="+", default=["beams/map", "faces/map", "beams/vmap"],
                     choices=["beams/map", "faces/map", "beams/vmap", "faces/vmap"],
                     help="LiDAR sampling/batching variants to time (the first, the Lidar default, is the headline)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sim_speed"))
+    ap.add_argument("--out", default=str(RESULTS / "sim_speed"))
     args = ap.parse_args(argv)
 
     import jax
@@ -128,9 +130,7 @@ def main(argv=None) -> int:
         print(json.dumps(res), flush=True)
         if res["camera"]["compilations_timed"] or any(v["compilations_timed"] for v in res["lidar_variants"].values()):
             print("warning: a timed frame recompiled (pair buffer grew)", file=sys.stderr)
-    out = {"benchmark": "sim_speed", "machine": platform.machine(), "processor": platform.processor(),
-           "python": sys.version.split()[0], "jax": jax.__version__, "backend": jax.default_backend(),
-           "devices": [str(d) for d in jax.devices()], "cpu_count": os.cpu_count(), "runs": runs,
+    out = {"benchmark": "sim_speed", "machine": machine_record(devices=[str(d) for d in jax.devices()]), "runs": runs,
            "notes": "median of repeats after a warm-up call (first_call_s includes compilation); "
                     "poses change every frame; compilations_timed == 0 proves no per-frame recompilation "
                     "(compilations_warmup counts the first trace plus at most a pair-buffer growth); "

@@ -1,7 +1,7 @@
 """Progress of a training run (finished or not) from its stats.jsonl: steps done, seconds per step
 by window, surfel count, the training-view PSNR against wall time and the normal loss by step.
 
-    python benchmarks/run_progress.py runs/fern30k --name train_fern_progress
+    python benchmarks/analysis/run_progress.py runs/fern30k --name train_fern_progress
 
 Training PSNR is of the one view each step trains on (smoothed over 100 steps), not a test
 metric: a run trained with `--set test_curve_every=N` also has the test views' PSNR every N
@@ -15,13 +15,15 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+import sys
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.train.run_dir import STATS_NAME, TEST_CURVE_NAME
 
-RESULTS = Path(__file__).parent / "results"
 WINDOWS = [(0, 500), (500, 1000), (1000, 1500), (1500, 3000), (3000, 7000), (7000, 7100), (15000, 15100),
            (29000, 29100)]
 STALL_S = 1.0
@@ -107,7 +109,7 @@ def main(argv=None) -> int:
     summary = summarize(records, int(config.get("steps", 30000)))
     summary.update(run=str(args.run), data=config.get("data"), downscale=config.get("downscale"),
                    raster=config.get("raster"), lambda_normal=config.get("lambda_normal"),
-                   machine=args.machine)
+                   machine=args.machine or machine_record(start_backend=False))
     curve = read_jsonl(args.run / TEST_CURVE_NAME)
     if curve:
         keys = ("step", "elapsed_s", "psnr", "l1", "num_surfels", "background_alpha")

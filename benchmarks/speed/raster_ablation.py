@@ -1,7 +1,7 @@
 """Rasterizer ablation on a trained scene: tile size x chunk size x backward, forward and
 forward+backward time of real surfels seen from the dataset's test cameras.
 
-    python benchmarks/raster_ablation.py --run runs/bench/fern_30000/default [--views 3]
+    python benchmarks/speed/raster_ablation.py --run runs/bench/fern_30000/default [--views 3]
 
 The run folder gives the surfels (point_cloud.ply, or the checkpoint of an unfinished run) and
 its dataset. The chunk size and the backward do not change the image; the tile size changes
@@ -19,7 +19,7 @@ import dataclasses
 import itertools
 import json
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
@@ -29,15 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, ROOT, machine_record  # noqa: E402
+from speed.raster_speed import timed  # noqa: E402
 import ghsplat_jax as gs
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster import rasterize
-from ghsplat_jax.raster.render import _binning_cfg, capacity_bucket, count_pairs
+from ghsplat_jax.raster.render import binning_config, capacity_bucket, count_pairs
 from ghsplat_jax.train.run_dir import load_run, load_training_data
-from raster_speed import timed  # noqa: E402  (benchmarks/ is the script's folder)
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = Path(__file__).parent / "results"
 
 
 # Changes of the run's settings timed beside the tile x chunk grid.
@@ -50,7 +50,7 @@ VARIANTS = {"batch32": dict(batch_chunks=32), "batch64": dict(batch_chunks=64), 
 
 def bench_view(surfels, view, cfg: gs.RasterConfig, repeats: int):
     cam = view.camera
-    pairs, fullest = (int(x) for x in count_pairs(surfels, cam, _binning_cfg(cfg)))
+    pairs, fullest = (int(x) for x in count_pairs(surfels, cam, binning_config(cfg)))
     capacity = capacity_bucket(pairs)
     slots = max(32, 1 << max(fullest - 1, 0).bit_length())
     image = jnp.asarray(view.image)
@@ -144,8 +144,7 @@ def main(argv=None) -> int:
         "image_size": [int(w), int(h)], "views": [v.name for v in views], "rows": rows,
         "default": _label(default), "fastest_forward_backward": _label(fastest),
         "default_over_fastest_cpu": default["forward_backward_cpu_s"] / fastest["forward_backward_cpu_s"],
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
-                    "device": str(jax.devices()[0])},
+        "machine": machine_record(),
         "measured_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     out = Path(args.results)

@@ -2,10 +2,10 @@
 images_8 at 504x378 (target >= 25 dB); training time, peak memory, final surfel count, and
 the budgeted strategy against the default at a fifth of the default's count.
 
-    python benchmarks/train_accuracy.py                      # full 30k-step schedule (GPU-sized)
-    python benchmarks/train_accuracy.py --steps 2000         # short schedule (scaled 2DGS shape)
-    python benchmarks/train_accuracy.py --scenes fern --steps 1000 --no-budget
-    python benchmarks/train_accuracy.py --until 2000 --no-budget   # first 2000 steps of the 30k run
+    python benchmarks/analysis/train_accuracy.py                      # full 30k-step schedule (GPU-sized)
+    python benchmarks/analysis/train_accuracy.py --steps 2000         # short schedule (scaled 2DGS shape)
+    python benchmarks/analysis/train_accuracy.py --scenes fern --steps 1000 --no-budget
+    python benchmarks/analysis/train_accuracy.py --until 2000 --no-budget   # first 2000 steps of the 30k run
 
 A short --steps run compresses the whole schedule (densification every 10 steps, opacity
 resets every 100): on real scenes that is a different, worse method. --until N instead runs
@@ -21,15 +21,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, ROOT, machine_record  # noqa: E402
 from ghsplat_jax.io_utils import write_json
 
-ROOT = Path(__file__).resolve().parent.parent
 SCENES = {
     # name: (dataset folder, overrides, target test PSNR)
     "lego": ("nerf_synthetic_lego", {"downscale": 2.0, "background": [1.0, 1.0, 1.0]}, 32.0),
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-fraction", type=float, default=0.2, help="budget = this x the default run's count")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra TrainConfig overrides")
     ap.add_argument("--runs", default=str(ROOT / "runs" / "bench"), help="run folders")
-    ap.add_argument("--results", default=str(ROOT / "benchmarks" / "results"))
+    ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
 
     import tomllib
@@ -110,9 +110,7 @@ def main(argv=None) -> int:
             "scene": name, "dataset": data, "steps": args.steps, "schedule": schedule, "target_test_psnr": target,
             "overrides": overrides | extra,
             "default": summary(default), "meets_target": default["test"]["psnr"] >= target,
-            "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
-                        "jax": jax.__version__, "backend": jax.default_backend(),
-                        "devices": [str(d) for d in jax.devices()]},
+            "machine": machine_record(devices=[str(d) for d in jax.devices()]),
             "measured_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         deviations = []

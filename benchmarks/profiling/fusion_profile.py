@@ -7,8 +7,8 @@ frame. The same trace says how many ops ran at once (not how many cores: see `bu
 This rasterizer's speed depends on XLA:CPU's fusion choices, so a change in a JAX upgrade shows
 up here first.
 
-    JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --surfels 100000 --frames 3
-    JAX_PLATFORMS=cpu python benchmarks/fusion_profile.py --train-run RUN [--label NAME]
+    JAX_PLATFORMS=cpu python benchmarks/profiling/fusion_profile.py --surfels 100000 --frames 3
+    JAX_PLATFORMS=cpu python benchmarks/profiling/fusion_profile.py --train-run RUN [--label NAME]
 
 Writes benchmarks/results/fusion_profile.json. CPU only (it reads XLA:CPU's thread names).
 With `--train-run` (a run folder with config.toml and checkpoint.npz) it profiles real training
@@ -41,10 +41,12 @@ if "--one-core" in sys.argv:  # before JAX starts its thread pools, which inheri
 import jax
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
+from speed.sim_speed import greenhouse_surfels  # noqa: E402
 from ghsplat_jax.io_utils import write_json
-from sim_speed import greenhouse_surfels  # noqa: E402  (benchmarks/ is the script's folder)
 
-DEFAULT_OUT = str(Path(__file__).parent / "results" / "fusion_profile.json")
+DEFAULT_OUT = str(RESULTS / "fusion_profile.json")
 TOP_WRITTEN = 40  # ops written per profile (by time)
 # XLA:CPU runs compiled ops on its intra-op pool, and small programs inline on the client's thread.
 OP_THREADS = ("tf_XLAEigen", "tf_XLAPjRtCpuClient")
@@ -144,7 +146,7 @@ def profile_camera(surfels: int, width: int, height: int, frames: int) -> dict:
             for pose in poses[1:]:
                 renderer.render(s, cam, pose)
         events = op_events(trace_dir)
-    fn = renderer._fn(width, height)
+    fn = renderer.program(width, height)
     Ks = cam.matrix[None].astype(np.float32)
     w2cs = frames_mod.world_to_cam(poses[0])[None].astype(np.float32)
     sources = source_of(fn.lower(s, Ks, w2cs).compile().as_text())
@@ -192,14 +194,14 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
     from ghsplat_jax.train.config import load_config
     from ghsplat_jax.train.run_dir import load_training_data
     from ghsplat_jax.train.trainer import step_raster_config, view_order
-    from raster_speed import exp_rate
-    from train_speed import _session
+    from speed.raster_speed import exp_rate
+    from speed.train_speed import compiled_session
 
     host_memory.reuse_freed_memory()  # as `ghsplat train` runs
     # The step as one program, whose compiled text maps every op to its loop (the parted step's
     # programs would each need their own map).
     config = load_config(run_dir / "config.toml").replace(step_threads=1)
-    session = _session(config, load_training_data(config), run_dir / "checkpoint.npz")
+    session = compiled_session(config, load_training_data(config), run_dir / "checkpoint.npz")
     state0, step0 = session.state, int(session.state.step)
 
     def run(k):
@@ -257,8 +259,7 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
 
 def main_step(args) -> int:
     result = profile_training_step(Path(args.train_run), args.steps)
-    result.update(jax=jax.__version__, cpus=os.cpu_count(), cores_used=len(os.sched_getaffinity(0)),
-                  load_average=os.getloadavg()[0])
+    result.update(machine=machine_record(), cores_used=len(os.sched_getaffinity(0)))
     out = Path(args.out).with_name("fusion_profile_step.json") if args.out == DEFAULT_OUT else Path(args.out)
     windows = json.loads(out.read_text()) if out.exists() else {}
     windows[args.label or f"{Path(args.train_run).name} @ step {result['step']}"] = result
@@ -296,7 +297,7 @@ def main(argv=None) -> int:
     if args.train_run:
         return main_step(args)
     result = profile_camera(args.surfels, args.width, args.height, args.frames)
-    result.update(jax=jax.__version__, cpus=os.cpu_count(), load_average=os.getloadavg()[0])
+    result.update(machine=machine_record())
     write_json(args.out, result)
     busy = result["busy_per_frame"]
     print(f"frame {result['frame_wall_s'] * 1e3:.0f} ms wall, {result['thread_ms_per_frame']:.0f} thread-ms "

@@ -1,7 +1,7 @@
 """SfM stage timings (extraction, matching, mapping) against image count and image size,
 and pose accuracy on lund_door against its reference model, per mapper.
 
-    JAX_PLATFORMS=cpu .venv/bin/python benchmarks/sfm_speed.py [--repeats 3] [--quick]
+    JAX_PLATFORMS=cpu .venv/bin/python benchmarks/speed/sfm_speed.py [--repeats 3] [--quick]
 
 Uses the shared datasets (never copied): llff_fern/images_4 (20 photos, 1008x756) for
 the sweeps, lund_door (12 photos, 1296x1936) for accuracy. Each configuration runs
@@ -12,8 +12,6 @@ benchmarks/results/sfm_speed.json and sfm_speed.png.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -22,15 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from ghsplat_jax.io_utils import atomic_write, write_json  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
+from ghsplat_jax.io_utils import atomic_write, json_safe, write_json  # noqa: E402
 from ghsplat_jax.paths import datasets_root  # noqa: E402
 from ghsplat_jax.sfm import pipeline  # noqa: E402
 from ghsplat_jax.sfm.evaluate import compare_models  # noqa: E402
 from ghsplat_jax.sfm.frames import list_images  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 STAGES = ("extraction", "matching", "mapping")
 
 
@@ -115,9 +112,7 @@ def main() -> int:
 
     report = {
         "benchmark": "sfm_speed",
-        "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                    "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                    "load_average_at_end": list(os.getloadavg())},
+        "machine": machine_record(),
         "versions": {"pycolmap": pycolmap.__version__, "colmap": pycolmap.COLMAP_version},
         "repeats": args.repeats,
         "note": "median seconds per stage over repeats (CPU SIFT, exhaustive matching, "
@@ -127,23 +122,10 @@ def main() -> int:
         "fern_by_size": by_size,
         "lund_door_accuracy": accuracy,
     }
-    write_json(RESULTS / "sfm_speed.json", _clean(report))
+    write_json(RESULTS / "sfm_speed.json", json_safe(report))
     plot(report, RESULTS / "sfm_speed.png")
     print(f"wrote {RESULTS / 'sfm_speed.json'} and sfm_speed.png")
     return 0
-
-
-def _clean(obj):
-    """JSON-safe: NaN/inf to None, numpy scalars to Python."""
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 def plot(report: dict, path: Path) -> None:

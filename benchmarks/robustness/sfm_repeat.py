@@ -1,6 +1,6 @@
 """Run-to-run spread of `ghsplat sfm`: the same photos, the same options and seed, run again.
 
-    python benchmarks/sfm_repeat.py runs/greenhouse4/row0_x0/photos runs/greenhouse4/row3_x1/photos \
+    python benchmarks/robustness/sfm_repeat.py runs/greenhouse4/row0_x0/photos runs/greenhouse4/row3_x1/photos \
         --repeats 3 --single-threaded 2
 
 Each folder holds images/ and the generator's exact model in sparse/0. Every run is the command a
@@ -19,11 +19,13 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
+from record import RESULTS, machine_record  # noqa: E402
 from ghsplat_jax.experiments.report import markdown_table
-from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
+from ghsplat_jax.io_utils import atomic_write, write_json
 from ghsplat_jax.sfm.evaluate import compare_model_dirs
 
-RESULTS = Path(__file__).parent / "results" / "sfm_disambiguation"
+RESULTS = RESULTS / "sfm_disambiguation"
 
 
 def run_once(folder: Path, threads: int, max_size: int) -> dict:
@@ -56,12 +58,12 @@ def main(argv=None) -> int:
         for threads in [-1] * args.repeats + [1] * args.single_threaded:
             rows.append(run_once(folder, threads, args.max_size))
             print(rows[-1], flush=True)
-    write_json(RESULTS / "repeatability.json", {"machine": machine_info(), "rows": rows})
+    write_json(RESULTS / "repeatability.json", {"machine": machine_record(start_backend=False), "rows": rows})
     cols = ("folder", "threads", "exit", "status", "registered", "images", "centre_error_max_pct",
             "rotation_error_max_deg", "dropped_spikes", "seconds")
     with atomic_write(RESULTS / "repeatability.md", "w") as fh:
         fh.write("# Run-to-run spread of `ghsplat sfm` (same photos, options and seed)\n\n"
-                 "Made by `benchmarks/sfm_repeat.py`; errors against the generator's exact cameras "
+                 "Made by `benchmarks/robustness/sfm_repeat.py`; errors against the generator's exact cameras "
                  "(similarity-aligned), in % of the extent.\n\n" + markdown_table(rows, cols))
     return 0
 
