@@ -30,7 +30,7 @@ demo: install
 	$(BIN)/ghsplat demo
 
 bench: install
-	$(BIN)/python benchmarks/raster_speed.py
+	$(BIN)/python benchmarks/speed/raster_speed.py
 
 clean:
 	rm -rf $(VENV) .cache build *.egg-info

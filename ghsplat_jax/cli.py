@@ -17,15 +17,15 @@ from ghsplat_jax.host_memory import reuse_freed_memory
 COMMANDS = {
     "demo": "ghsplat_jax.commands.demo",
     "render": "ghsplat_jax.commands.render",
-    "sfm": "ghsplat_jax.sfm.command",
+    "sfm": "ghsplat_jax.commands.sfm",
     "train": "ghsplat_jax.commands.train",
-    "eval": "ghsplat_jax.eval.command",
+    "eval": "ghsplat_jax.commands.eval",
     "run": "ghsplat_jax.commands.run",
-    "export": "ghsplat_jax.scene.export_command",
-    "compose": "ghsplat_jax.scene.compose_command",
-    "simulate": "ghsplat_jax.sim.command",
-    "localize": "ghsplat_jax.sim.localize_command",
-    "synth": "ghsplat_jax.synth.command",
+    "export": "ghsplat_jax.commands.export",
+    "compose": "ghsplat_jax.commands.compose",
+    "simulate": "ghsplat_jax.commands.simulate",
+    "localize": "ghsplat_jax.commands.localize",
+    "synth": "ghsplat_jax.commands.synth",
     "bench": "ghsplat_jax.commands.bench",
 }
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -71,6 +72,20 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb"):
             os.fsync(fh.fileno())
 
 
+def json_safe(obj):
+    """`obj` as JSON can hold it (write_json refuses NaN): NaN and inf to None, numpy scalars to
+    Python numbers, tuples to lists, through dicts and lists."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "dtype") and hasattr(obj, "item") and getattr(obj, "ndim", None) == 0:  # numpy scalar
+        obj = obj.item()
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    return obj
+
+
 def write_json(path: str | os.PathLike, obj) -> Path:
     with atomic_write(path, "w") as fh:
         json.dump(obj, fh, indent=2, allow_nan=False)
@@ -94,16 +109,20 @@ def device_name() -> str:
     return str(jax.devices()[0].device_kind)
 
 
-def machine_info() -> dict:
-    """What a result was measured on: recorded beside every benchmark and experiment report."""
+def machine_info(start_backend: bool = True) -> dict:
+    """What a result was measured on: recorded beside every benchmark and experiment report.
+    start_backend=False leaves JAX's backend unstarted (no jax_backend / device): for a process
+    that only starts others, which must not claim the accelerator."""
     import platform
 
     import jax
 
-    return {"platform": platform.platform(), "processor": platform.processor() or _cpu_model() or platform.machine(),
+    info = {"platform": platform.platform(), "processor": platform.processor() or _cpu_model() or platform.machine(),
             "cpu_simd": _cpu_simd(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
-            "jax": jax.__version__, "jax_backend": jax.default_backend(), "device": device_name(),
-            "load_average": list(os.getloadavg())}
+            "jax": jax.__version__}
+    if start_backend:
+        info.update(jax_backend=jax.default_backend(), device=device_name())
+    return dict(info, load_average=list(os.getloadavg()))
 
 
 def _cpuinfo_field(name: str) -> str:

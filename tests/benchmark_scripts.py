@@ -1,4 +1,4 @@
-"""Load a script of benchmarks/ as a module, for the tests of its functions."""
+"""Load a script of benchmarks/KIND/ as a module, for the tests of its functions."""
 
 import importlib.util
 import sys
@@ -8,10 +8,12 @@ BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
 
 
 def load_benchmark(name: str):
-    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    """benchmarks/KIND/NAME.py (whatever its KIND) as the module NAME."""
+    (path,) = [p for p in BENCHMARKS.glob(f"*/{name}.py") if p.parent.name != "results"]
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses look their module up there
-    sys.path.insert(0, str(BENCHMARKS))  # some import helpers from their folder
+    sys.path.insert(0, str(BENCHMARKS))  # record.py and the scripts they import from other kinds
     try:
         spec.loader.exec_module(module)
     finally:

@@ -82,7 +82,7 @@ def test_auto_recipe_is_a_table_under_the_other_settings():
 
 
 def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
-    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
     ds = cached_synthetic_dataset(num_views=20, width=32, height=24, num_surfels=40, test_every=5, num_points=200)

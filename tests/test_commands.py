@@ -104,7 +104,7 @@ def finished_run(scene, tmp_path_factory):
 
 
 def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
-    """raster_ablation imports its sibling raster_speed: `ghsplat bench` must put benchmarks/ on the path."""
+    """raster_ablation imports speed/raster_speed and record.py: `ghsplat bench` must put benchmarks/ on the path."""
     proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
                    "--tiles", "8", "--chunks", "16", "--variants", "box3,logspace-autodiff", "--results", tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -139,7 +139,7 @@ def test_bench_outside_a_checkout_says_so(monkeypatch, tmp_path, capsys):
 @pytest.mark.slow
 def test_quick_demo_writes_every_stage(tmp_path):
     from ghsplat_jax.scene.tags import load_tags
-    from ghsplat_jax.sim.recorder import read_bag
+    from ghsplat_jax.transport.recorder import read_bag
     from ghsplat_jax.train import run_dir
 
     out = tmp_path / "demo"

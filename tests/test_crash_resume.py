@@ -1,6 +1,6 @@
 """A training process killed with SIGKILL at seeded random moments, some of them in the middle
 of a checkpoint write, always leaves a run folder that `ghsplat train --resume` continues to the
-end (benchmarks/crash_resume.py: the real `ghsplat train` in a subprocess; the full benchmark
+end (benchmarks/robustness/crash_resume.py: the real `ghsplat train` in a subprocess; the full benchmark
 kills it 20 times)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""benchmarks/device_table1.py: which run a GPU session pauses or resumes, its rate windows and
+"""benchmarks/analysis/device_table1.py: which run a GPU session pauses or resumes, its rate windows and
 what it packs to bring back."""
 
 import argparse

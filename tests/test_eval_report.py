@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from ghsplat_jax.eval.charts import pareto_front, scatter_figure, scatter_series, write_charts, write_pareto_charts
+from ghsplat_jax.experiments.charts import pareto_front, scatter_figure, scatter_series, write_charts, write_pareto_charts
 from ghsplat_jax.eval.metrics import image_metrics, summarize
-from ghsplat_jax.eval.report import collect_runs, table1_markdown, write_results, write_table1
-from ghsplat_jax.eval.runner import load_experiment
+from ghsplat_jax.experiments.report import collect_runs, table1_markdown, write_results, write_table1
+from ghsplat_jax.experiments.runner import load_experiment
 from ghsplat_jax.train.config import ConfigError
 
 
@@ -189,7 +189,7 @@ def test_pareto_front_and_its_chart(tmp_path):
 
 
 def test_rows_and_charts_name_an_accelerator(tmp_path):
-    from ghsplat_jax.eval.report import run_row
+    from ghsplat_jax.experiments.report import run_row
     from ghsplat_jax.train.run_dir import write_metrics
 
     write_metrics(tmp_path, {"test": {"psnr": 29.4, "l1": 0.02, "ssim": 0.9, "num_views": 8}, "num_gaussians": 5,
@@ -217,7 +217,7 @@ def test_collect_keeps_a_lost_runs_row_from_the_last_report(tmp_path, caplog):
     """A long experiment's runs folder can be lost between sessions while its report survives in
     the repository: collecting again keeps such a run's row from results.json (with a warning),
     takes every run that has its metrics.json from the run, and drops rows of unplanned runs."""
-    from ghsplat_jax.eval.runner import collect
+    from ghsplat_jax.experiments.runner import collect
 
     exp_file = tmp_path / "e.toml"
     exp_file.write_text(f'''name = "e"

@@ -1,4 +1,4 @@
-"""benchmarks/fusion_profile.py: compiled ops timed from a real profiler trace, traced back to
+"""benchmarks/profiling/fusion_profile.py: compiled ops timed from a real profiler trace, traced back to
 their source lines, the count of ops running at once, and the training profile's loop regions."""
 
 from pathlib import Path

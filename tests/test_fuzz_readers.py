@@ -424,7 +424,7 @@ def test_layout_reader_under_fuzz(tmp_path):
 def test_experiment_reader_under_fuzz(tmp_path):
     from pathlib import Path
 
-    from ghsplat_jax.eval.runner import load_experiment
+    from ghsplat_jax.experiments.runner import load_experiment
     from ghsplat_jax.train.config import ConfigError
 
     base = (Path(__file__).parents[1] / "experiments" / "quick_cpu.toml").read_text()
@@ -445,10 +445,10 @@ def test_experiment_reader_under_fuzz(tmp_path):
 # ------------------------------------------------------------------------------ DDS messages
 
 def test_dds_messages_under_fuzz():
-    from ghsplat_jax.sim import dds_types as D
+    from ghsplat_jax.transport import dds_types as D
     from ghsplat_jax.sim import messages
     from ghsplat_jax.sim.camera_sensor import CameraModel
-    from ghsplat_jax.sim.dds_node import camera_from_request, pose_from_sample
+    from ghsplat_jax.transport.dds_node import camera_from_request, pose_from_sample
 
     T = np.eye(4)
     T[:3, 3] = [1.0, 2.0, 0.5]

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from ghsplat_jax.sim import recorder
+from ghsplat_jax.transport import recorder
 
 
 @pytest.fixture(scope="module")

@@ -65,13 +65,13 @@ def test_refuses_to_write_nan(tmp_path):
 def test_3dgs_gaussian_keeps_its_plane():
     """A 3DGS Gaussian whose smallest axis is x or y becomes a surfel in the plane of the other two."""
     from ghsplat_jax.core.quaternions import to_rotation_matrix
-    from ghsplat_jax.data.ply import _surfel_from_3dgs
+    from ghsplat_jax.data.ply import surfel_from_3dgs
 
     r = np.random.default_rng(0)
     q = r.normal(size=(3, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     scales3 = np.log(np.array([[0.001, 0.2, 0.3], [0.2, 0.001, 0.3], [0.3, 0.2, 0.001]]))
-    s2, q2 = _surfel_from_3dgs(scales3, q)
+    s2, q2 = surfel_from_3dgs(scales3, q)
     R, R2 = np.asarray(to_rotation_matrix(q)), np.asarray(to_rotation_matrix(q2))
     for i, dropped in enumerate([0, 1, 2]):
         kept = [a for a in range(3) if a != dropped]

@@ -91,25 +91,25 @@ def test_overflow_under_jit_is_reported_or_raised():
 
 
 def test_eager_render_grows_capacity_and_recompiles_only_per_bucket():
-    from ghsplat_jax.raster.render import _rasterize_jit
+    from ghsplat_jax.raster.render import rasterize_jit
 
     cam = camera(128, 96)
     first = gs.render(random_scene(200, seed=0), cam)
-    compiled = _rasterize_jit._cache_size()
+    compiled = rasterize_jit._cache_size()
     for seed in (1, 2, 3):  # same shapes, new values, same bucket: no new compilation
         out = gs.render(random_scene(200, seed=seed), cam)
         assert int(out.stats.capacity) == int(first.stats.capacity)
-    assert _rasterize_jit._cache_size() == compiled
+    assert rasterize_jit._cache_size() == compiled
     # Larger surfels need more pairs: the exact count picks a bigger bucket, compiled once.
     big = random_scene(200, scale=(0.5, 0.9))
     out = gs.render(big, cam)
     assert int(out.stats.overflow) == 0 and int(out.stats.capacity) > int(first.stats.capacity)
     assert int(out.stats.num_pairs) > int(first.stats.capacity)
-    assert _rasterize_jit._cache_size() == compiled + 1
+    assert rasterize_jit._cache_size() == compiled + 1
 
 
 def test_one_capacity_for_many_views_renders_them_all_with_one_compile():
-    from ghsplat_jax.raster.render import _rasterize_jit, capacity_for_views
+    from ghsplat_jax.raster.render import rasterize_jit, capacity_for_views
 
     s = random_scene(200, scale=(0.1, 0.9), seed=4)
     cams = [camera(96, 72, eye=(x, -3.5 + abs(x), 1.0)) for x in (-1.5, -0.5, 0.0, 0.7, 1.6)]
@@ -118,12 +118,12 @@ def test_one_capacity_for_many_views_renders_them_all_with_one_compile():
     capacity = capacity_for_views(s, cams)
     assert capacity >= max(int(o.stats.num_pairs) for o in alone)
     cfg = gs.RasterConfig(pair_capacity=capacity)
-    compiled = _rasterize_jit._cache_size()
+    compiled = rasterize_jit._cache_size()
     for c, o in zip(cams, alone):
         out = gs.render(s, c, cfg)
         assert int(out.stats.overflow) == 0 and int(out.stats.capacity) == capacity
         np.testing.assert_allclose(np.asarray(out.rgb), np.asarray(o.rgb), atol=1e-6)
-    assert _rasterize_jit._cache_size() == compiled + 1
+    assert rasterize_jit._cache_size() == compiled + 1
     assert capacity_for_views(s, []) is None
 
 

@@ -1,4 +1,4 @@
-"""benchmarks/run_progress.py: a run's windows, stalls, test curve and (when finished) its test metrics."""
+"""benchmarks/analysis/run_progress.py: a run's windows, stalls, test curve and (when finished) its test metrics."""
 
 import json
 

@@ -11,7 +11,7 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from ghsplat_jax.eval.runner import load_experiment, run_experiment
+from ghsplat_jax.experiments.runner import load_experiment, run_experiment
 from ghsplat_jax.train.run_dir import STATS_NAME, has_checkpoint, read_metrics
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
 
@@ -28,7 +28,7 @@ def local_ray():
 
 
 def test_quick_preset_runs_as_ray_tasks_skipping_and_resuming(tmp_path, local_ray):
-    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.eval.evaluate import train_and_evaluate
 
     ds = cached_synthetic_dataset(num_views=6, width=32, height=24, num_surfels=40, test_every=3, num_points=200)
     data = write_transforms(ds, tmp_path / "tiny")
@@ -62,7 +62,7 @@ def test_quick_preset_runs_as_ray_tasks_skipping_and_resuming(tmp_path, local_ra
 
 
 def test_resources_of_a_run():
-    from ghsplat_jax.eval.ray_executor import resources
+    from ghsplat_jax.experiments.ray_executor import resources
 
     assert resources({"CPU": 8.0}) == {"num_cpus": 1.0, "num_gpus": 0.0}
     assert resources({"CPU": 8.0, "GPU": 2.0}) == {"num_cpus": 1.0, "num_gpus": 1.0}

@@ -6,8 +6,8 @@ import json
 import pytest
 
 from ghsplat_jax.cli import main as ghsplat
-from ghsplat_jax.eval.runner import load_experiment
-from ghsplat_jax.studies.segments import prepare_segments
+from ghsplat_jax.experiments.runner import load_experiment
+from ghsplat_jax.experiments.segments import prepare_segments
 from ghsplat_jax.train.config import ConfigError
 
 EXPERIMENT = """name = "seg"

@@ -145,7 +145,7 @@ def test_unmatchable_images_fail_plainly(tmp_path, capsys):
 def test_align_config_file_and_flags(tmp_path):
     import argparse
 
-    from ghsplat_jax.sfm import command
+    from ghsplat_jax.commands import sfm as command
 
     parser = argparse.ArgumentParser()
     command.add_arguments(parser)
@@ -169,7 +169,7 @@ def test_align_config_file_and_flags(tmp_path):
 def test_sift_peak_threshold_flag():
     import argparse
 
-    from ghsplat_jax.sfm import command
+    from ghsplat_jax.commands import sfm as command
     from ghsplat_jax.sfm.pipeline import SfmError, SfmOptions
 
     parser = argparse.ArgumentParser()

@@ -13,7 +13,8 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from ghsplat_jax.sim import dds_node, frames
+from ghsplat_jax.sim import frames
+from ghsplat_jax.transport import dds_node
 from ghsplat_jax.sim.camera_sensor import CameraModel
 
 TESTS = Path(__file__).parent
@@ -22,7 +23,8 @@ NODE = textwrap.dedent("""
     import json, logging, os, sys, time
     sys.path.insert(0, {tests!r})
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)
-    from ghsplat_jax.sim import beams, camera_sensor, dds_node, lidar
+    from ghsplat_jax.sim import beams, camera_sensor, lidar
+    from ghsplat_jax.transport import dds_node
     from test_sim_fakes import box_room_renderer
     r = box_room_renderer()
     node = dds_node.SimNode(None, domain_id={domain},

@@ -50,7 +50,7 @@ def _decoder(channel: dict):
 
 def test_foxglove_client_receives_the_simulators_image_and_cloud():
     from ghsplat_jax.sim import messages as m
-    from ghsplat_jax.sim.foxglove_sink import FoxgloveSink
+    from ghsplat_jax.transport.foxglove_sink import FoxgloveSink
 
     sim = _simulated_messages()
     sink = FoxgloveSink(port=0)  # 127.0.0.1, a free port
@@ -117,7 +117,7 @@ def test_foxglove_client_receives_the_simulators_image_and_cloud():
 def test_simulate_foxglove_flag_binds_loopback_by_default():
     import argparse
 
-    from ghsplat_jax.sim.command import add_arguments
+    from ghsplat_jax.commands.simulate import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -11,7 +11,9 @@ from ghsplat_jax.scene import markers, surfaces
 from ghsplat_jax.scene.merge import merge
 from ghsplat_jax.data.ply import save_ply
 from ghsplat_jax.scene.tags import save_tags
-from ghsplat_jax.sim import localize, robot
+from ghsplat_jax.localize import apriltag as localize
+from ghsplat_jax.localize import report
+from ghsplat_jax.sim import robot
 
 
 @pytest.fixture(scope="module")
@@ -65,11 +67,11 @@ def test_localize_command_report(tag_scene, tmp_path):
     assert s["position_error_m"]["max"] < 0.05
     assert (out / "localization.png").stat().st_size > 1000
     # the chart's data: what it draws is what localization.json says
-    series = localize.plot_series(res)
+    series = report.plot_series(res)
     assert series["t"] == [f["t"] for f in res["frames"]] and len(series["t"]) == 2
     np.testing.assert_allclose(series["position_error"], [f["position_error"] for f in res["frames"]])
     assert series["rate_vs_distance"]["rate"] == [r["detection_rate"] for r in s["rate_vs_distance"]] == [1.0]
-    fig = localize.plot_figure(series)
+    fig = report.plot_figure(series)
     drawn = fig.axes[2].lines[0].get_xydata()
     np.testing.assert_allclose(drawn, np.c_[series["t"], series["position_error"]])
     assert [bar.get_height() for bar in fig.axes[0].patches] == series["rate_vs_distance"]["rate"]

@@ -6,8 +6,9 @@ import pytest
 pytest.importorskip("cyclonedds")
 pytest.importorskip("rosbags")
 
-from ghsplat_jax.sim import dds_types as D
-from ghsplat_jax.sim import frames, messages as m, recorder, robot
+from ghsplat_jax.sim import frames, messages as m, robot
+from ghsplat_jax.transport import dds_types as D
+from ghsplat_jax.transport import recorder
 
 
 def _samples():

@@ -1,6 +1,6 @@
 """The soak benchmark's property at small scale: resident memory stays flat over a long
 simulation with a bag recorded and a Foxglove server attached (analytic renderer, so it is
-quick). benchmarks/sim_soak.py measures the full 10,000 frames with the rasterizer."""
+quick). benchmarks/robustness/sim_soak.py measures the full 10,000 frames with the rasterizer."""
 
 from __future__ import annotations
 

@@ -9,7 +9,8 @@ import pytest
 pytest.importorskip("viser")
 
 from ghsplat_jax.scene import surfaces
-from ghsplat_jax.sim import robot, viewer
+from ghsplat_jax.sim import robot
+from ghsplat_jax.transport import viewer
 from ghsplat_jax.sim.camera_sensor import CameraFrame, CameraModel
 from ghsplat_jax.sim.scene_io import SimScene
 

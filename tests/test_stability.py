@@ -1,4 +1,4 @@
-"""The stability study (experiments/stability.toml, ghsplat_jax/studies/stability.py) and the
+"""The stability study (experiments/stability.toml, ghsplat_jax/experiments/stability.py) and the
 pose-noise perturbation it trains from, on tiny inputs."""
 
 import dataclasses
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.data.perturb import perturb_poses
-from ghsplat_jax.eval.runner import load_experiment
-from ghsplat_jax.studies import stability
+from ghsplat_jax.experiments import stability
+from ghsplat_jax.experiments.runner import load_experiment
+from ghsplat_jax.io_utils import json_safe
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
@@ -106,6 +107,9 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
     fail row naming the error, never a pass."""
     exp = dataclasses.replace(load_experiment(TOML, preset="quick"), output=tmp_path / "runs",
                               results=tmp_path / "results")
+    # the file names the recorded rows relative to the repository root, where `ghsplat run` starts
+    assert (ROOT / exp.spec["sfm_recorded"]).is_file()
+    exp.spec["sfm_recorded"] = str(ROOT / exp.spec["sfm_recorded"])
     exp.spec["cases"] = [
         {"family": "sfm_recorded", "name": "ident", "recorded": "identical-5-handheld-s0", "methods": ["none"]},
         {"family": "raster", "name": "sparse", "scene": "sparse", "compositor": "carried", "width": 24,
@@ -132,7 +136,7 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
     rerun = stability.run_study(exp, only={"sparse"})
     assert [r["case"] for r in rerun["rows"]] == ["ident", "sparse", "broken"]
     assert rerun["rows"][1]["seconds"] != rows["sparse"]["seconds"]  # computed again (new key)
-    assert rerun["rows"][0] == json.loads(json.dumps(stability._clean(rows["ident"])))
+    assert rerun["rows"][0] == json.loads(json.dumps(json_safe(rows["ident"])))
     assert len(json.loads((tmp_path / "results" / "stability.json").read_text())["rows"]) == 3
 
 
@@ -151,12 +155,12 @@ def test_cached_sfm_rows_follow_their_source(tmp_path, monkeypatch):
     recorded benchmark file for sfm_recorded, the SfM defaults for live SfM cases."""
     recorded = tmp_path / "results.json"
     recorded.write_text('{"rows": []}')
-    monkeypatch.setattr(stability, "RECORDED", recorded)
+    ctx = stability.Context(tmp_path, tmp_path, None, recorded=recorded)
     case = {"family": "sfm_recorded", "name": "r", "recorded": "x"}
-    before = stability._key(case, None)
-    assert stability._key(case, None) == before
+    before = stability._key(case, ctx)
+    assert stability._key(case, ctx) == before
     recorded.write_text('{"rows": [1]}')
-    assert stability._key(case, None) != before
+    assert stability._key(case, ctx) != before
     live = {"family": "sfm", "name": "s"}
     from ghsplat_jax.sfm import pipeline
 

@@ -228,7 +228,7 @@ train = {{ strategy = "mcmc" }}
 
 
 def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_path):
-    from ghsplat_jax.eval.runner import load_experiment, resolve_count, run_one
+    from ghsplat_jax.experiments.runner import load_experiment, resolve_count, run_one
 
     f = tmp_path / "frac.toml"
     f.write_text(EXPERIMENT.format(out=tmp_path / "runs"))
@@ -258,7 +258,7 @@ def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_p
 def test_runner_takes_a_lost_references_count_from_the_report(tmp_path, monkeypatch):
     # `ghsplat run --only s/mcmc_20` in a later session whose runs folder is gone: the default's
     # row survives in results.json, so the compact run starts with its cap instead of failing.
-    from ghsplat_jax.eval import runner
+    from ghsplat_jax.experiments import runner
 
     f = tmp_path / "frac.toml"
     f.write_text(EXPERIMENT.format(out=tmp_path / "runs"))
@@ -274,7 +274,7 @@ def test_runner_takes_a_lost_references_count_from_the_report(tmp_path, monkeypa
 
 
 def test_compactness_report_states_the_goal_check(tmp_path):
-    from ghsplat_jax.eval.compactness import write_compactness
+    from ghsplat_jax.experiments.compactness import write_compactness
 
     rows = []
     for variant, strategy, frac, n, psnr in (("default", "default", None, 1000, 25.0), ("mcmc_20", "mcmc", 0.2, 200, 24.9),

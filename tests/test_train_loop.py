@@ -417,7 +417,7 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
     import time
 
     from ghsplat_jax.eval import evaluate
-    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train.run_dir import TEST_CURVE_NAME
 
     slow = 2.0  # each evaluation made this much slower, so leaving it out shows in the step times

@@ -1,8 +1,10 @@
-"""`ghsplat bench NAME [ARGS...]`: run one of the repository's benchmarks/NAME.py scripts.
+"""`ghsplat bench NAME [ARGS...]`: run one of the repository's benchmarks/KIND/NAME.py scripts
+(KIND: speed, profiling, robustness, analysis; NAME alone finds it, KIND/NAME also works).
 
 The benchmarks are scripts of the source checkout, not modules of the installed package:
-they run as `python benchmarks/NAME.py` would, with benchmarks/ first on sys.path so they
-can import each other (raster_ablation uses raster_speed's timer).
+they run as `python benchmarks/KIND/NAME.py` would, with benchmarks/ first on sys.path so they
+find record.py (results folder, machine record) and each other (raster_ablation uses
+speed/raster_speed's timer).
 """
 
 from __future__ import annotations
@@ -18,8 +20,20 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", help="benchmark name, e.g. raster_speed")
+    p.add_argument("name", help="benchmark name, e.g. raster_speed or speed/raster_speed")
     p.add_argument("args", nargs=argparse.REMAINDER, help="arguments passed to the script (see its --help)")
+
+
+def scripts() -> list[Path]:
+    """The benchmark scripts, benchmarks/KIND/NAME.py."""
+    return sorted(p for p in BENCHMARKS.glob("*/*.py") if p.parent.name != "results")
+
+
+def find_script(name: str) -> Path | None:
+    """benchmarks/KIND/NAME.py for "NAME" or "KIND/NAME", None when there is no such script."""
+    name = name.removesuffix(".py")
+    found = [p for p in scripts() if name in (p.stem, f"{p.parent.name}/{p.stem}")]
+    return found[0] if len(found) == 1 else None
 
 
 def main(args) -> int:
@@ -28,14 +42,15 @@ def main(args) -> int:
               "are scripts of the source checkout: clone the repository and install it with `pip install -e .`",
               file=sys.stderr)
         return 2
-    script = BENCHMARKS / f"{args.name}.py"
-    if not script.is_file():
-        known = sorted(p.stem for p in BENCHMARKS.glob("*.py"))
-        print(f"ghsplat bench: no benchmark {script} (available: {', '.join(known) or 'none'})", file=sys.stderr)
+    script = find_script(args.name)
+    if script is None:
+        known = sorted(f"{p.parent.name}/{p.stem}" for p in scripts())
+        print(f"ghsplat bench: no benchmark {args.name!r} in {BENCHMARKS} (available: {', '.join(known) or 'none'})",
+              file=sys.stderr)
         return 2
     saved_argv, saved_path = sys.argv, list(sys.path)
     sys.argv = [str(script), *args.args]
-    sys.path.insert(0, str(BENCHMARKS))
+    sys.path[:0] = [str(script.parent), str(BENCHMARKS)]
     try:
         runpy.run_path(str(script), run_name="__main__")
     except SystemExit as exc:  # the scripts end with `raise SystemExit(main())`

@@ -1,6 +1,6 @@
 """`ghsplat run experiments/NAME.toml`: train a set of runs (scenes x variants), skip finished
 ones, and collect their metrics into one table, a Table-1 report and charts. A file with
-`kind = "stability"` runs the stability study instead (ghsplat_jax/studies/stability.py)."""
+`kind = "stability"` runs the stability study instead (ghsplat_jax/experiments/stability.py)."""
 
 from __future__ import annotations
 
@@ -37,10 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ghsplat_jax.eval.runner import load_experiment, run_experiment
-    from ghsplat_jax.studies.segments import prepare_segments
+    from ghsplat_jax.experiments.runner import load_experiment, run_experiment
+    from ghsplat_jax.experiments.segments import prepare_segments
     from ghsplat_jax.train.config import ConfigError
-    from ghsplat_jax.train.run_dir import has_checkpoint
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     overrides = {"steps": args.steps} if args.steps is not None else None
@@ -57,8 +56,7 @@ def main(args) -> int:
         return _run_stability(exp, args)
     if args.list:
         for r in exp.runs:
-            state = "finished" if r.finished else ("interrupted" if has_checkpoint(r.out_dir) else "todo")
-            print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
+            print(f"{r.scene}/{r.variant}: {r.state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
                   f"strategy={r.config.strategy.name})")
         return 0
     if args.executor != "ray" and (args.address or args.cpus_per_run or args.gpus_per_run):
@@ -98,8 +96,8 @@ def main(args) -> int:
 
 
 def _run_stability(exp, args) -> int:
-    """kind = "stability": the cases of experiments/stability.toml (ghsplat_jax/studies/stability.py)."""
-    from ghsplat_jax.studies.stability import StudyError, check_cases, run_study
+    """kind = "stability": the cases of experiments/stability.toml (ghsplat_jax/experiments/stability.py)."""
+    from ghsplat_jax.experiments.stability import StudyError, check_cases, run_study
 
     try:
         cases = check_cases(exp.spec.get("cases"))

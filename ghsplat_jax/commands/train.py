@@ -79,7 +79,7 @@ def resolve_config(args):
 
 
 def main(args) -> int:
-    from ghsplat_jax.eval.runner import train_and_evaluate
+    from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train import ConfigError, TrainingDivergedError
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

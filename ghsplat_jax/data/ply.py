@@ -165,7 +165,7 @@ def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     scales = np.stack([col("scale_0"), col("scale_1")], axis=1)
     quats = np.stack([col(f"rot_{i}") for i in range(4)], axis=1)
     if "scale_2" in names:
-        scales, quats = _surfel_from_3dgs(np.stack([scales[:, 0], scales[:, 1], col("scale_2")], axis=1), quats)
+        scales, quats = surfel_from_3dgs(np.stack([scales[:, 0], scales[:, 1], col("scale_2")], axis=1), quats)
         warnings.warn(f"{path}: 3DGS file with three scales; kept the largest two per Gaussian and "
                       f"turned its frame so the dropped (smallest) axis is the surfel normal", stacklevel=2)
     return Surfels(
@@ -194,7 +194,7 @@ def _check_finite(path: Path, v: np.ndarray, names: list[str]) -> None:
 _TO_NORMAL = np.array([[0.5, 0.5, 0.5, 0.5], [np.sqrt(0.5), np.sqrt(0.5), 0, 0], [1.0, 0, 0, 0]])
 
 
-def _surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Keep the two largest of three scales, in axis order, and the matching rotation."""
     dropped = np.argmin(log_scales3, axis=1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[dropped]

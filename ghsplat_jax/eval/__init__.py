@@ -1,5 +1,5 @@
-"""Evaluation: image metrics, per-run evaluation with renders, Table-1 reports, charts and
-the experiment runner."""
+"""Evaluation: image metrics and per-run evaluation with renders (experiments/ collects the
+runs into reports and charts)."""
 
 from ghsplat_jax.eval.metrics import image_metrics, summarize
 

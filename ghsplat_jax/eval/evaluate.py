@@ -1,5 +1,6 @@
 """Evaluate trained surfels on a dataset's views: metrics per view and split, render time,
-renders with depth and normal maps, and the run's metrics.json (train/run_dir.py: where)."""
+renders with depth and normal maps, and the run's metrics.json (train/run_dir.py: where);
+train_and_evaluate: one run trained and evaluated (`ghsplat train`, the experiment runner)."""
 
 from __future__ import annotations
 
@@ -159,3 +160,41 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     dataset = rd.load_training_data(config)
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
                     train_peak_rss_mb=meta.get("peak_rss_mb"))
+
+
+def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
+                       until: int | None = None) -> dict:
+    """Train into `out_dir` and evaluate; returns the metrics (or a short summary without eval
+    or when stopped early by `until`)."""
+    from ghsplat_jax.train import train
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    if resume:  # a process killed mid-write leaves scratch folders beside the outputs
+        from ghsplat_jax.io_utils import remove_scratch
+
+        for p in remove_scratch(out_dir):
+            log.info("removed %s, left by an interrupted write", p)
+    dataset = dataset if dataset is not None else load_training_data(config)
+    test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
+    result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
+    summary = {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps,
+               "finished": result.finished}
+    if result.stop is not None:
+        summary["stop"] = stop_summary(result.stop, result.steps, config.resolved().steps)
+    if not evaluate or not result.finished:
+        return summary
+    extra = {k: summary[k] for k in ("stop",) if k in summary}
+    return _evaluate(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps,
+                     extra=extra) | {"finished": True}
+
+
+def stop_summary(rule: dict, steps: int, max_steps: int) -> dict:
+    """What metrics.json says of a run with validation: why and when it stopped, and the step
+    whose model it kept."""
+    stopped = rule.get("stopped_at") is not None
+    return {"reason": rule["reason"] if stopped else f"the schedule ended at step {max_steps}",
+            "stopped_at": int(rule["stopped_at"]) if stopped else int(steps), "best_step": int(rule["best_step"]),
+            "best_val_psnr": rule["best_psnr"], "annealed_at": rule.get("annealed_at")}
+
+
+_evaluate = evaluate  # train_and_evaluate's `evaluate` flag shadows the function's name

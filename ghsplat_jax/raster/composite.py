@@ -129,7 +129,7 @@ def _blend(alpha: jax.Array, log_t0: jax.Array):
     return t_before, included, weight
 
 
-def _last_median(included, t_before):
+def last_median(included, t_before):
     """Per pixel, a one-hot over the chunk marking the last surfel with T > 0.5, and whether any."""
     flag = included & (t_before > 0.5)
     later = jnp.cumsum(flag[::-1].astype(jnp.int32), axis=0)[::-1] - flag
@@ -184,7 +184,7 @@ def _forward(st: Static, cp: ChunkParams, valid, tile, first, remat: bool):
     def pass2(cp_w, valid_w, tile_w, log_t0_w):
         alpha, z = evaluate_chunk(cp_w, valid_w, tile_w, st)
         t_before, included, weight = _blend(alpha, log_t0_w)
-        last, has = _last_median(included, t_before)
+        last, has = last_median(included, t_before)
         sums = pixel_sums(weight, z, cp_w.color, cp_w.normal, st)
         return sums, jnp.sum(jnp.where(last, z, 0.0), axis=0), has
 
@@ -236,7 +236,7 @@ def _custom_bwd(st, residuals, cotangents):
         d_alpha = jnp.where(included, t_before * h - after / (1.0 - alpha), 0.0)
         dm_dz = st.far / (st.far - st.near) * st.near / (z * z)
         d_z = weight * (g_z + (g_m + 2.0 * g_m2 * m) * dm_dz)
-        last, _ = _last_median(included, t_before)
+        last, _ = last_median(included, t_before)
         d_z += jnp.where(last & (selected[tile_w] == w)[None], g_median[tile_w][None], 0.0)
         d_M, d_center, d_opacity, d_depth = pullback((d_alpha, d_z))
         return ChunkParams(M=d_M, center=d_center, opacity=d_opacity,

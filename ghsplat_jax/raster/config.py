@@ -18,7 +18,7 @@ class RasterConfig:
     near: float = 0.2                      # cull centres and skip hits nearer than this (metres)
     far: float = 100.0                     # far plane of the NDC depth used by the distortion term
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rgb behind the last surfel
-    # Defaults are the fastest exact choice measured on a 2-core CPU (benchmarks/raster_ablation.py):
+    # Defaults are the fastest exact choice measured on a 2-core CPU (benchmarks/speed/raster_ablation.py):
     # 8-px tiles waste fewer pixel evaluations than 2DGS's 16; batches of 128 chunks beat 64 by 5%
     # per fern training step (loop overhead against the per-pixel planes' cache footprint) and tie
     # at the demo's 192x144.
@@ -30,7 +30,7 @@ class RasterConfig:
     batch_chunks: int = 128                # chunks evaluated together (cache footprint vs. loop overhead)
     # The batch of each part when the carried compositor walks in parts from threads (the CPU
     # training step, train/parted_step.py). Measured, not derived: 32 made a fern step at 1,250
-    # 1.14x and a lego step at 30,000 1.08x faster than 128 (interleaved, `benchmarks/train_speed.py
+    # 1.14x and a lego step at 30,000 1.08x faster than 128 (interleaved, `benchmarks/speed/train_speed.py
     # --compare partbatch`). Likely cause: with one core idle XLA spreads a large batch's ops over
     # both, and with both walking it cannot, so only the larger planes' cache cost is left.
     part_batch_chunks: int = 32

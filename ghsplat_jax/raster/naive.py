@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, _last_median, evaluate_chunk, pixel_sums
+from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, last_median, evaluate_chunk, pixel_sums
 
 
 def composite_dense(st: Static, pair_params: ChunkParams, pair_valid, tile_slots: int,
@@ -27,6 +27,6 @@ def composite_dense(st: Static, pair_params: ChunkParams, pair_valid, tile_slots
     included = (alpha > 0) & (t_before * one_minus >= T_MIN)
     weight = jnp.where(included, alpha * t_before, 0.0)
     sums = jax.vmap(lambda w, z, c, n: pixel_sums(w, z, c, n, st))(weight, z, params.color, params.normal)
-    last, _ = jax.vmap(_last_median)(included, t_before)
+    last, _ = jax.vmap(last_median)(included, t_before)
     median = jnp.sum(jnp.where(last, z, 0.0), axis=1)
     return sums, median

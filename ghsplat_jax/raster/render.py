@@ -180,7 +180,7 @@ def _raise_on_overflow(num_pairs, capacity):
             f"eagerly with pair_capacity=None to size it automatically")
 
 
-_rasterize_jit = jax.jit(rasterize, static_argnames=("cfg", "capacity", "tile_slots"))
+rasterize_jit = jax.jit(rasterize, static_argnames=("cfg", "capacity", "tile_slots"))  # render's compiled rasterizer
 
 
 def _count_pairs(s: Surfels, cam: Camera, cfg: RasterConfig, points: bool = False) -> tuple[jax.Array, jax.Array]:
@@ -215,10 +215,10 @@ def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
         return rasterize(s, cam, cfg, capacity, means2d_probe, samples=samples)
     if s.means.shape[0] == 0:
         return _empty(cam, cfg, samples)
-    needed, fullest = (int(x) for x in count_pairs(s, cam, _binning_cfg(cfg), samples is not None))
+    needed, fullest = (int(x) for x in count_pairs(s, cam, binning_config(cfg), samples is not None))
     capacity = capacity_bucket(max(needed, cfg.pair_capacity or 0))
     slots = max(32, 1 << max(fullest - 1, 0).bit_length()) if cfg.backend == "dense" else None
-    out = _rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots, samples)
+    out = rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots, samples)
     if int(out.stats.overflow):  # the count is exact, so this is a bug: never return a partial image
         raise RasterOverflowError(f"pair count {needed} disagreed with the render ({int(out.stats.num_pairs)})")
     return out
@@ -232,12 +232,13 @@ def capacity_for_views(s: Surfels, cameras, cfg: RasterConfig | None = None) -> 
     s = _as_surfels(s)
     if s.means.shape[0] == 0:
         return None
-    counts = [int(count_pairs(s, cam, _binning_cfg(cfg))[0]) for cam in cameras]
+    counts = [int(count_pairs(s, cam, binning_config(cfg))[0]) for cam in cameras]
     return capacity_bucket(max(counts)) if counts else None
 
 
-def _binning_cfg(cfg: RasterConfig) -> RasterConfig:
-    # Only the fields that change binning matter, so one compiled counter serves all variants.
+def binning_config(cfg: RasterConfig) -> RasterConfig:
+    """The part of `cfg` that binning depends on (count_pairs takes it): only the fields that
+    change binning matter, so one compiled counter serves all variants."""
     return RasterConfig(near=cfg.near, far=cfg.far, tile_size=cfg.tile_size, lowpass_filter=cfg.lowpass_filter,
                         bounds=cfg.bounds)
 

@@ -10,6 +10,7 @@ data/ply.py, below training, which writes and reads PLYs too).
     layout     greenhouse layout TOML; compose builds the scene from it
     tsdf       depth fusion into a TSDF and marching-cubes meshes
     views      shape-stable renders and orbit cameras for the tools above
+    export     the `ghsplat export` pipeline: merge, clean, transform, write (and a mesh)
 
 Modules import their heavy dependencies (scipy, cv2, trimesh, OpenImageIO, skimage) on use.
 """

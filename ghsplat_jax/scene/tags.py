@@ -37,6 +37,12 @@ class Tag:
         return c @ self.world_from_tag[:3, :3].T + self.world_from_tag[:3, 3]
 
 
+def tags_beside(ply: str | os.PathLike) -> Path:
+    """Where a scene PLY's tags file goes by default: <stem>.tags.json beside it."""
+    ply = Path(ply)
+    return ply.with_name(ply.stem + ".tags.json")
+
+
 def save_tags(path: str | os.PathLike, tags: list[Tag], family: str = "tag36h11") -> Path:
     return write_json(path, {"family": family, "tags": [
         {"id": int(t.id), "size": float(t.size),

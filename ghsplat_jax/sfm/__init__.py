@@ -11,6 +11,7 @@ Modules (import the one you need; pycolmap and cv2 load only there):
   numpy functions; the robust ground-plane fit uses optimistix.
 - frames.py: sharp, well-spread keyframes from a video or a frame folder.
 - evaluate.py: Umeyama alignment and pose errors against a reference model.
-- report.py: reconstruction statistics and plain advice when images fail to register.
-- command.py: `ghsplat sfm`.
+- report.py: reconstruction statistics, plain advice when images fail to register, and the
+  outcome of a run as an exit status and message (verdict).
+- `ghsplat sfm` is ghsplat_jax/commands/sfm.py.
 """

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from pathlib import Path
 
 import numpy as np
 
@@ -450,3 +451,26 @@ def transform_world_to_cam(alignment: Alignment, world_to_cam: np.ndarray) -> np
         "...ij,j->...i", rot @ alignment.rotation.T, alignment.translation
     )
     return new
+
+
+def load_align_config(path: Path | None) -> dict:
+    """The alignment settings of a TOML or JSON file (an [align] table or the whole file),
+    keys checked; {} without a file. Error texts name the `--align-config` option."""
+    if path is None:
+        return {}
+    import json
+    import tomllib
+
+    try:
+        text = path.read_text()
+        config = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except FileNotFoundError as exc:
+        raise ValueError(f"--align-config {path}: no such file") from exc
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"--align-config {path}: cannot parse ({exc})") from exc
+    config = config.get("align", config)  # allow an [align] table
+    allowed = {"rotation", "yaw_deg", "flip", "scale", "camera_height", "known_distance"}
+    unknown = set(config) - allowed
+    if unknown:
+        raise ValueError(f"--align-config {path}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    return config

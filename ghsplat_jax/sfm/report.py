@@ -6,6 +6,11 @@ import math
 
 import numpy as np
 
+# `ghsplat sfm` exit status by outcome (verdict)
+EXIT_BAD_INPUT = 1
+EXIT_TOO_FEW_REGISTERED = 3
+EXIT_FOLDED = 4
+
 
 def _finite(value) -> float | None:
     """A JSON-safe float: None instead of NaN or inf (reports never hold NaNs)."""
@@ -151,3 +156,15 @@ def _fold_lines(report: dict) -> list[str]:
         elif diag["fold_suspected"]:
             lines.append("Fold check: FOLD SUSPECTED (" + "; ".join(diag["reasons"]) + ").")
     return lines
+
+
+def verdict(status: str, fold_reasons: list[str], registered: int, num_images: int, needed: float,
+            out) -> tuple[int, str | None]:
+    """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status."""
+    if status == "ok":
+        return 0, None
+    if status == "folded":
+        return EXIT_FOLDED, (f"ghsplat sfm: the model looks folded ({'; '.join(fold_reasons)}); it is in {out} for "
+                             "inspection only: do not train on it (--no-fold-check to accept it)")
+    return EXIT_TOO_FEW_REGISTERED, (f"ghsplat sfm: only {registered} of {num_images} images registered "
+                                     f"(below --min-registered-fraction {needed})")

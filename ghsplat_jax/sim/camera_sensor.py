@@ -61,9 +61,9 @@ def counted_capacity(surfels, cameras, cfg, headroom: float = 1.25, points: bool
     pass), with headroom for the next poses: the first compilation is usually the only one.
     `points`: the views render sample points (`raster.samples`), not whole images."""
     from ghsplat_jax.raster import capacity_bucket
-    from ghsplat_jax.raster.render import _binning_cfg, count_pairs
+    from ghsplat_jax.raster.render import binning_config, count_pairs
 
-    needed = max(int(count_pairs(surfels, cam, _binning_cfg(cfg), points)[0]) for cam in cameras)
+    needed = max(int(count_pairs(surfels, cam, binning_config(cfg), points)[0]) for cam in cameras)
     return capacity_bucket(int(needed * headroom))
 
 
@@ -141,7 +141,9 @@ class CameraRenderer:
     def _config(self):
         return sensor_config(self._raster_config, self.pair_capacity, self._background)
 
-    def _fn(self, width: int, height: int):
+    def program(self, width: int, height: int):
+        """The jit-compiled render of a batch of cameras of this image size: (surfels, Ks, w2cs) ->
+        (rgb, alpha, depth, normal, overflow, pairs); one compilation per size."""
         key = (width, height)
         if key not in self._fns:
             import jax
@@ -182,7 +184,7 @@ class CameraRenderer:
                 cams = [Camera(K, w, W, H) for K, w in zip(Ks, w2cs)]
                 self.pair_capacity = initial_capacity(self._render_fn, surfels, cams, self._config())
             for _ in range(8):
-                rgb, alpha, depth, normal, overflow, pairs = self._fn(W, H)(surfels, Ks, w2cs)
+                rgb, alpha, depth, normal, overflow, pairs = self.program(W, H)(surfels, Ks, w2cs)
                 if int(overflow) == 0:
                     break
                 self.pair_capacity = grown_capacity(int(pairs))

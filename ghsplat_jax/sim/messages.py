@@ -2,7 +2,7 @@
 
 These rosbags dataclasses are the single source of every message: the bag recorder
 serialises them with `typestore.serialize_cdr`, the DDS node converts them field by field
-to its IDL types (sim/dds_types.py), and tests check both give the same bytes.
+to its IDL types (transport/dds_types.py), and tests check both give the same bytes.
 """
 
 from __future__ import annotations

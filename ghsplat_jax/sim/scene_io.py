@@ -49,7 +49,7 @@ def load_scene(path: str | os.PathLike, tags_path: str | os.PathLike | None = No
     import jax
 
     from ghsplat_jax.data.ply import PlyError, load_ply
-    from ghsplat_jax.scene.tags import load_tags
+    from ghsplat_jax.scene.tags import load_tags, tags_beside
 
     path = Path(path)
     if not path.exists():
@@ -65,7 +65,7 @@ def load_scene(path: str | os.PathLike, tags_path: str | os.PathLike | None = No
         elif suffix == ".ply":
             surfels = load_ply(path)
             tags, rows = [], None
-            default_tags = path.with_name(path.stem + ".tags.json")
+            default_tags = tags_beside(path)
             if tags_path is None and default_tags.exists():
                 tags_path = default_tags
         else:

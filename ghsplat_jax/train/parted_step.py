@@ -2,7 +2,7 @@
 
 XLA:CPU runs one while loop at a time on one thread, even two independent loops in one
 program, and the compositor's loops take most of a CPU step; two jitted calls made from two
-threads do run side by side (`benchmarks/loop_threads.py`). So this step runs as:
+threads do run side by side (`benchmarks/profiling/loop_threads.py`). So this step runs as:
   1. `front`: the step's surfels, projected and binned, and the vjp of the per-surfel table;
   2. the compositor's forward walk, one call per part of the used chunks (`carried.split_chunks`:
      whole tiles, about equal shares), each part from its own thread, in batches of
