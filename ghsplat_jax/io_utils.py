@@ -125,6 +125,22 @@ def machine_info(start_backend: bool = True) -> dict:
     return dict(info, load_average=list(os.getloadavg()))
 
 
+def code_revision() -> str:
+    """The package's git revision ("<sha>", "<sha>+dirty" with uncommitted changes under it), or
+    "unknown" outside a git checkout: recorded beside results so a number names its code."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10,
+                             check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", str(here)], cwd=here,
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return sha + ("+dirty" if dirty else "")
+
+
 def _cpuinfo_field(name: str) -> str:
     """A field of the first CPU in /proc/cpuinfo ("" where there is none, e.g. off Linux)."""
     try:

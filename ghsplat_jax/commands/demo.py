@@ -20,23 +20,20 @@ from pathlib import Path
 HELP = "run the whole pipeline on the embedded procedural greenhouse row and write a report"
 
 SETTINGS = {  # quick: about two minutes; full: under ten on a 2-core CPU
-    "quick": dict(plants=3, views=12, size=(128, 96), downscale=1, points=3000, steps=200, sfm=False,
-                  sim_frames=4, loc_frames=6, train={}),
-    # SIFT needs some resolution: photos at 384x288, training at half that. The 2DGS schedule cut
-    # at 3000 steps, densifying from step 300 instead of 500, with the budget strategy capped at
-    # 30k surfels: 28 views do not need the default's 100k, which overfit and slow every step.
-    # Training alone, measured on 2 cores: 24.9 dB test PSNR in 392 s; the default densification
-    # gave 23.1 dB in 451 s (2000 steps) and 24.0 dB in 651 s (2500 steps).
-    "full": dict(plants=4, views=32, size=(384, 288), downscale=2, points=6000, steps=3000, sfm=True,
-                 sim_frames=10, loc_frames=20,
-                 train={"densify_from": 300, "strategy": "budget", "max_surfels": 30000,
-                        "budget_schedule": "immediate"}),
+    "quick": dict(plants=3, views=12, size=(128, 96), downscale=1, points=3000, steps=300, sfm=False,
+                  sim_frames=4, loc_frames=6, recipe="auto", train={"val_every": 50}),
+    # SIFT needs some resolution: photos at 384x288, training at half that, with the auto recipe:
+    # the model sizes itself and the run stops when the held-out views stop improving (`steps` is
+    # only a ceiling). (The 2DGS default cut at 3000 steps gave 23.1-24.0 dB in 451-651 s.)
+    "full": dict(plants=4, views=32, size=(384, 288), downscale=2, points=6000, steps=6000, sfm=True,
+                 sim_frames=10, loc_frames=20, recipe="auto", train={}),
 }
 
 
 def train_overrides(mode: dict) -> list[str]:
-    """The `ghsplat train` arguments (--set KEY=VALUE ...) of a SETTINGS mode's schedule changes."""
-    return [arg for key, value in mode["train"].items() for arg in ("--set", f"{key}={value}")]
+    """The `ghsplat train` arguments of a SETTINGS mode: its recipe and its changes (--set KEY=VALUE)."""
+    recipe = ["--recipe", mode["recipe"]] if mode.get("recipe") else []
+    return recipe + [arg for key, value in mode["train"].items() for arg in ("--set", f"{key}={value}")]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -189,7 +186,10 @@ def write_report(out: Path, mode, times, metrics, sfm_report, views, total) -> N
             lines.append(f"| SfM camera centre error, max (% of extent) | {100 * acc['centre_error_max_rel']:.2f} |")
             lines.append(f"| SfM camera rotation error, max (deg) | {acc['rotation_error_max_deg']:.2f} |")
     changed = ", ".join(f"{k} = {v}" for k, v in mode["train"].items()) or "none"
-    lines += [f"| training steps | {metrics.get('steps')} of the 2DGS schedule (changed: {changed}) |",
+    stop = metrics.get("stop")
+    schedule = (f"the {mode['recipe']} recipe: {stop['reason']}; kept step {stop['best_step']}" if stop else
+                f"of the 2DGS schedule (changed: {changed})")
+    lines += [f"| training steps | {metrics.get('steps')}, {schedule} |",
               f"| surfels | {metrics.get('num_gaussians')} |",
               f"| training time (s) | {metrics.get('train_seconds', 0):.0f} |",
               f"| test PSNR (dB) | {test.get('psnr', float('nan')):.2f} |",

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.eval.metrics import background_cover, image_metrics, summarize
-from ghsplat_jax.io_utils import device_name
+from ghsplat_jax.io_utils import code_revision, device_name, machine_info
 from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
@@ -183,7 +183,9 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
         summary["stop"] = stop_summary(result.stop, result.steps, config.resolved().steps)
     if not evaluate or not result.finished:
         return summary
-    extra = {k: summary[k] for k in ("stop",) if k in summary}
+    # Where and with what code it trained (the training seconds depend on both), from this process.
+    extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
+                                                                   "code_revision": code_revision()}
     return _evaluate(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps,
                      extra=extra) | {"finished": True}
 

@@ -170,8 +170,10 @@ class _Session:
             self.val_views = list(dataset.train)
         self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(
             train_views, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
-        self.schedule = (spectrum_schedule(np.asarray(self.images), config.res_until, config.res_energy,
-                                           config.res_min_side) if config.res_schedule == "spectrum" else [(0, 1)])
+        # Full resolution by res_until, and for the last two thirds of a short run at least.
+        until = min(config.res_until, config.steps // 3)
+        self.schedule = (spectrum_schedule(np.asarray(self.images), until, config.res_energy, config.res_min_side)
+                         if config.res_schedule == "spectrum" else [(0, 1)])
         if len(self.schedule) > 1:
             log.info("resolution schedule: %s", ", ".join(f"1/{f} from step {s}" for s, f in self.schedule))
         self.levels: dict[int, tuple] = {1: (self.images, self.Ks, self.width, self.height)}
