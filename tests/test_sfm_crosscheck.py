@@ -140,3 +140,12 @@ def test_cross_check_flags_and_drops_a_moved_view(shift, turn):
     assert dropped["rounds"][0][0]["name"] == moved
     advice = crosscheck.advice(dropped)
     assert advice and moved in advice[0] and "--no-cross-check" in advice[-1]
+
+
+def test_views_the_others_cannot_confirm_are_flagged():
+    model = _model(6)
+    report = crosscheck.cross_check(model, crosscheck.CrossCheckOptions(min_points=1000))
+    assert report["num_confirmed"] == 0 and len(report["flagged"]) == 6
+    assert all("cannot be re-localised" in f["reason"] for f in report["flagged"])
+    quiet = crosscheck.cross_check(model, crosscheck.CrossCheckOptions(min_points=1000, flag_unconfirmed=False))
+    assert quiet["flagged"] == []
