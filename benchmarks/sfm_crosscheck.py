@@ -7,7 +7,8 @@ rotation-chain bound, no cross-check) and with the current ones.
 Cases: rowR_xE (R in 0-3, E in x0/x1; 60 views of 384x288 round that end of row R of the
 default four-row greenhouse, half the row: experiments/table1_greenhouse.toml [prepare]),
 orbitN (N views of 384x288 round the single plant of benchmarks/configs/orbit_plant.toml,
-mapped with --align none), a "-mt" suffix maps with every CPU thread (--threads -1).
+mapped with --align none), a "-mt" suffix maps with every CPU thread (--threads -1), and a
+"#k" suffix names a repeat (the multithreaded mapper differs from run to run).
 Photos are rendered once into WORK/case/photos and kept. Every run is `run_sfm` as
 `ghsplat sfm --max-size 384` runs it; the model is scored with compare_model_dirs, and the
 cross-check's flagged views with their true errors in the earlier model. Appends to
@@ -43,7 +44,7 @@ def render(case: str, photos: Path) -> float:
     if (photos / "sparse" / "0").is_dir():
         return 0.0
     start = time.perf_counter()
-    base = case.removesuffix("-mt")
+    base = _base(case)
     if m := re.fullmatch(r"row(\d)_(x[01])", base):
         world = scene.generate_scene(config.SceneConfig())
         cams = capture.capture_path(world, "handheld", 60, row=int(m[1]), width=WIDTH, height=HEIGHT,
@@ -56,6 +57,11 @@ def render(case: str, photos: Path) -> float:
         raise SystemExit(f"unknown case {case!r} (rowR_xE or orbitN, optional -mt)")
     dataset.write_dataset(world, cams, photos, meshes=False, overwrite=True, progress=False)
     return time.perf_counter() - start
+
+
+def _base(case: str) -> str:
+    """The capture a case maps: its name without the -mt and #k suffixes."""
+    return case.split("#")[0].removesuffix("-mt")
 
 
 def per_view_errors(model: Path, truth: Path) -> dict[str, tuple[float, float]]:
@@ -83,7 +89,7 @@ def run(case: str, photos: Path, out: Path, variant: str) -> dict:
     from ghsplat_jax.sfm.pipeline import SfmOptions, run_sfm
 
     options = SfmOptions(max_size=max(WIDTH, HEIGHT), progress=False,
-                         num_threads=-1 if case.endswith("-mt") else 1,
+                         num_threads=-1 if case.split("#")[0].endswith("-mt") else 1,
                          align="none" if case.startswith("orbit") else "greenhouse")
     if variant == "before":  # the fixed 30-degree drift bound and no cross-check
         options = dataclasses.replace(options, cross_check=False, fold_options=FoldOptions(drift_sigmas=0.0))
@@ -161,7 +167,7 @@ def main(argv=None) -> int:
     old = RESULTS / "results.json"
     rows = json.loads(old.read_text())["rows"] if old.is_file() else []
     for case in args.cases:
-        photos = args.work / case.removesuffix("-mt") / "photos"
+        photos = args.work / _base(case) / "photos"
         seconds = render(case, photos)
         before_errors = None
         for variant in args.variants:

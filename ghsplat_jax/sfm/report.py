@@ -118,7 +118,8 @@ def summary_text(report: dict) -> str:
         dropped = check.get("dropped", [])
         lines.append(f"Cross-check: {check['num_confirmed']} of {check['num_views'] + len(dropped)} views re-localised "
                      "with themselves left out"
-                     + (f"; {len(dropped)} landed elsewhere and were left out ({', '.join(dropped[:10])})."
+                     + (f"; {len(dropped)} landed elsewhere or could not be confirmed and were left out "
+                        f"({', '.join(dropped[:10])}{', ...' if len(dropped) > 10 else ''})."
                         if dropped else "; none lands elsewhere."))
     alignment = report.get("alignment", {})
     if alignment.get("method") == "greenhouse":
