@@ -137,6 +137,7 @@ def test_cross_check_flags_and_drops_a_moved_view(shift, turn):
     assert worst["centre_rel"] > 2 * options.max_centre_rel or worst["rotation_deg"] > 2 * options.max_rotation_deg
     dropped = crosscheck.check_and_drop(model)
     assert dropped["dropped"] == [moved] and dropped["flagged"] == [] and model.num_reg_images() == 11
+    assert dropped["refined"]  # the rest bundle-adjusted without it
     assert dropped["rounds"][0][0]["name"] == moved
     advice = crosscheck.advice(dropped)
     assert advice and moved in advice[0] and "--no-cross-check" in advice[-1]

@@ -590,7 +590,8 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
             report["dropped_spikes"] = drop_spikes(best, result.graph, options)
         if best is not None and options.cross_check:
             with _timed(timings, "cross_check"):
-                report["cross_check"] = crosscheck.check_and_drop(best, options.cross_check_options)
+                report["cross_check"] = crosscheck.check_and_drop(best, options.cross_check_options,
+                                                                  num_threads=options.num_threads)
         report.update(_registration(models, best, names))
         model_dir = distorted / "sparse" / "0"
         if best is None:  # leave no earlier run's model beside a report that says "failed"
