@@ -206,7 +206,11 @@ def bundle_adjust(reconstruction, num_threads: int = 1) -> None:
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
     options.ceres.solver_options.num_threads = num_threads
-    pycolmap.bundle_adjustment(reconstruction, options)
+    level = pycolmap.logging.minloglevel
+    try:
+        pycolmap.bundle_adjustment(reconstruction, options)
+    finally:
+        pycolmap.logging.minloglevel = level  # the adjustment turns pycolmap's log back on
 
 
 def check_and_drop(reconstruction, options: CrossCheckOptions = CrossCheckOptions(),
