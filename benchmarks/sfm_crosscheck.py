@@ -148,12 +148,13 @@ def write(rows: list[dict]) -> None:
         fh.write("# SfM checks against the exact cameras: rotation-chain bound and leave-one-out cross-check\n\n"
                  "Made by `benchmarks/sfm_crosscheck.py`. `before`: the fixed 30-degree rotation-chain bound and "
                  "no cross-check; `after`: the bound scaled with the chain's own link errors and every view "
-                 "re-localised with itself left out (views landing more than 0.5% of the extent or 1 degree "
+                 "re-localised with itself left out (views landing more than 0.3% of the extent or 0.6 degrees "
                  "away are dropped). Errors are of the kept views against the generator's exact cameras "
                  "(similarity-aligned), % of the extent. Row segments: 60 photos of 384x288 round one end of "
                  "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
                  "(`--capture orbit`, `--align none`); -mt: all CPU threads.\n\n"
-                 f"Git revision {git_revision()}; machine in results.json.\n\n" + markdown_table(table, cols, heads))
+                 f"Git revision {git_revision()}; machine in results.json. What each run shows, and the "
+                 "models checked offline: NOTES.md.\n\n" + markdown_table(table, cols, heads))
 
 
 def main(argv=None) -> int:
@@ -174,6 +175,7 @@ def main(argv=None) -> int:
             out = args.work / case / f"sfm_{variant}"
             row = run(case, photos, out, variant)
             row["render_s"] = round(seconds, 1)
+            row["git_revision"] = git_revision()
             if variant == "before" and (out / "sparse" / "0").is_dir():
                 before_errors = per_view_errors(out / "sparse" / "0", photos / "sparse" / "0")
             if before_errors is not None:
