@@ -170,7 +170,8 @@ def main(argv=None) -> int:
     for case in args.cases:
         photos = args.work / _base(case) / "photos"
         seconds = render(case, photos)
-        before_errors = None
+        earlier = args.work / case / "sfm_before" / "sparse" / "0"  # a before model from an earlier invocation
+        before_errors = per_view_errors(earlier, photos / "sparse" / "0") if earlier.is_dir() else None
         for variant in args.variants:
             out = args.work / case / f"sfm_{variant}"
             row = run(case, photos, out, variant)
