@@ -11,8 +11,10 @@ one too few of whose points the others confirm, is flagged; the pipeline deregis
 What it cannot see is a smooth bend that carries a view and the points it shares with its
 neighbours together (each view agrees with the others' points there).
 
-The numbers are relative to the model's extent (twice the largest distance of a registered
-camera centre from their centroid), as the ground-truth scoring (evaluate.compare_poses) is.
+Centre deviations are relative to the model's extent (twice the largest distance of a
+registered camera centre from their centroid), as the ground-truth scoring
+(evaluate.compare_poses) is, or to twice the median depth of the observed points when that is
+larger (forward-facing captures: cameras close together, the scene far away).
 """
 
 from __future__ import annotations
@@ -139,6 +141,14 @@ def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()
     model_centres = {i: reconstruction.images[i].projection_center() for i in reg}
     stacked = np.array(list(model_centres.values())).reshape(-1, 3)
     extent = 2.0 * float(np.max(np.linalg.norm(stacked - stacked.mean(0), axis=1))) if len(stacked) else 0.0
+    # Centres are measured against the extent, or twice the median depth of the observed points
+    # when that is larger: a forward-facing capture (cameras close together, scene far) places
+    # its centres to a share of the depth, not of its small extent.
+    depth = 0.0
+    if len(point_ids):
+        xyz_model = np.array([reconstruction.points3D[int(p)].xyz for p in point_ids])
+        depth = float(np.median(np.linalg.norm(xyz_model - centres, axis=1)))
+    scale = max(extent, 2.0 * depth)
     _, point_index = np.unique(point_ids, return_inverse=True)
     xyz, usable = leave_one_out_points(point_index, rays, centres, options.min_track, options.min_angle_deg)
     views, flagged = [], []
@@ -161,7 +171,7 @@ def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()
         w2c, inliers = pose
         model = image.cam_from_world().matrix()
         centre = -w2c[:, :3].T @ w2c[:, 3]
-        centre_rel = float(np.linalg.norm(centre - model_centres[image_id])) / max(extent, 1e-12)
+        centre_rel = float(np.linalg.norm(centre - model_centres[image_id])) / max(scale, 1e-12)
         rotation = _rotation_angle_deg(w2c[:, :3] @ model[:, :3].T)
         entry.update(confirmed=True, num_inliers=inliers, centre_rel=round(centre_rel, 5),
                      rotation_deg=round(rotation, 3))
@@ -174,7 +184,7 @@ def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()
     return {
         "method": "leave_one_out_relocalisation",
         "max_centre_rel": options.max_centre_rel, "max_rotation_deg": options.max_rotation_deg,
-        "extent": extent,
+        "extent": extent, "median_depth": depth, "scale": scale,
         "num_views": len(views), "num_confirmed": len(confirmed),
         "largest_centre_rel": max((v["centre_rel"] for v in confirmed), default=None),
         "largest_rotation_deg": max((v["rotation_deg"] for v in confirmed), default=None),
