@@ -217,6 +217,24 @@ def test_one_end_walk_covers_that_end_and_its_share_of_the_row(small_scene, end)
         capture.capture_path(small_scene, "handheld", 4, config=capture.PathConfig(end=end, segment_fraction=0))
 
 
+def test_orbit_rings_one_plant_evenly_and_closes_the_loop(small_scene):
+    path = capture.PathConfig(plant=1, orbit_radius=0.6)
+    cams = capture.capture_path(small_scene, "orbit", 72, row=1, width=64, height=48, seed=3, config=path)
+    row, spacing = small_scene.rows[1], small_scene.config.layout.plant_spacing
+    plant = np.array([1.5 * spacing, row.y])
+    centres = np.array([np.asarray(c.center, np.float64) for c in cams])
+    np.testing.assert_allclose(np.linalg.norm(centres[:, :2] - plant, axis=1), 0.6, atol=1e-4)
+    np.testing.assert_allclose(centres[:, 2], 1.1, atol=0.1)
+    heading = np.unwrap(np.arctan2(*(centres[:, :2] - plant).T[::-1]))
+    steps = np.diff(np.append(heading, heading[0] + 2 * np.pi))  # the last view neighbours the first
+    np.testing.assert_allclose(steps, 2 * np.pi / 72, atol=1e-6)
+    for cam in cams:  # every view looks at the plant
+        p = np.asarray(cam.world_to_cam, np.float64) @ np.append(plant, [0.55, 1.0])
+        assert p[2] > 0 and abs(p[0] / p[2]) < 0.1 and abs(p[1] / p[2]) < 0.1
+    with pytest.raises(ValueError, match="plant 3 does not exist"):
+        capture.capture_path(small_scene, "orbit", 4, config=capture.PathConfig(plant=3))
+
+
 def test_robot_path_drives_both_aisles_at_robot_height(small_scene):
     cams = capture.capture_path(small_scene, "robot", 10, row=0, width=64, height=48)
     row = small_scene.rows[0]

@@ -75,6 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="the capture closes a loop: the last frame is a neighbour of the first")
     d.add_argument("--no-fold-check", action="store_true",
                    help="report the fold diagnostics but do not fail the run on them")
+    d.add_argument("--no-cross-check", action="store_true",
+                   help="keep views that, re-localised with themselves left out, land elsewhere")
 
     v = parser.add_argument_group("video and frame folders")
     v.add_argument("--select-frames", action="store_true",
@@ -142,6 +144,7 @@ def build_options(args: argparse.Namespace):
     return SfmOptions(
         disambiguate=args.disambiguate, capture_order=args.capture_order,
         disambiguate_options=disambiguation, fold_check=not args.no_fold_check,
+        cross_check=not args.no_cross_check,
         matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
         camera_mode=args.camera_mode, max_size=args.max_size or None,
         max_features=args.max_features, sift_peak_threshold=args.sift_peak_threshold,

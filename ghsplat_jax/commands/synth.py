@@ -16,12 +16,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=40, help="number of views (default 40)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--path", choices=("handheld", "robot"), default="handheld", help="capture path kind")
+    parser.add_argument("--path", "--capture", dest="path", choices=("handheld", "robot", "orbit"), default="handheld",
+                        help="capture path kind; orbit: a turntable-like ring round one plant (a closed loop)")
     parser.add_argument("--row", type=int, default=0, help="row to capture (default 0)")
     parser.add_argument("--end", choices=("x0", "x1"), default=None,
                         help="handheld: walk round this end of the row only (one row segment)")
     parser.add_argument("--segment-fraction", type=float, default=0.5,
                         help="with --end: share of the row's length the walk covers (default 0.5)")
+    parser.add_argument("--plant", type=int, default=None,
+                        help="orbit: the plant along the row to circle (default the middle one)")
+    parser.add_argument("--orbit-radius", type=float, default=0.7, help="orbit: ring radius in metres")
     parser.add_argument("--fov", type=float, default=65.0, help="horizontal field of view, degrees")
     parser.add_argument("--fps", type=float, default=2.0, help="frame rate of the capture (time stamps)")
     parser.add_argument("--seed", type=int, default=None, help="override the config's seed")
@@ -49,7 +53,8 @@ def main(args: argparse.Namespace) -> int:
         cameras = capture.capture_path(world, args.path, args.views, row=args.row, width=args.width,
                                        height=args.height, seed=cfg.seed,
                                        config=capture.PathConfig(fov_x_deg=args.fov, fps=args.fps, end=args.end,
-                                                                 segment_fraction=args.segment_fraction))
+                                                                 segment_fraction=args.segment_fraction,
+                                                                 plant=args.plant, orbit_radius=args.orbit_radius))
         out = dataset.write_dataset(world, cameras, args.out, n_points=args.points, fps=args.fps,
                                     meshes=not args.no_mesh, overwrite=args.overwrite, progress=True)
     except (ValueError, FileExistsError) as exc:

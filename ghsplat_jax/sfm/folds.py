@@ -8,7 +8,8 @@ a small reprojection error, so those numbers cannot catch it. What it cannot hid
 - jumps: consecutive frames placed much farther apart than the typical step (reported
   only: a robot turning at a row end or a paused camera jumps too);
 - relative rotations chained along the capture sequence that drift away from the model's
-  by more than a generous bound (and, for a closed walk, a loop that does not close);
+  by more than a generous bound, which grows with the chain like a random walk of its links'
+  own errors (and, for a closed walk, a loop that does not close);
 - tracks observed from opposite sides (rays more than `opposite_deg` apart), which a
   surface point on a plant or the ground cannot be;
 - the chain: segments mapped from neighbour pairs alone (no look-alike pair between
@@ -53,6 +54,12 @@ class FoldOptions:
     # views), a 60-view greenhouse segment 4.9% off 16.6; silent folds of greenhouse segments that
     # passed every other check drifted 63.8 and 92.8 (sfm_disambiguation/repeatability*.md).
     max_rotation_drift_deg: float = 30.0
+    # ... or, for a longer chain, than drift_sigmas times the drift its own links explain: a chain
+    # of n links with independent per-link errors of s degrees per axis drifts like s sqrt(n) (a
+    # random walk), so a fixed bound refuses long correct captures (a 72-view orbit 0.06% off
+    # drifted 32 degrees). s comes from the links themselves, robustly (the median of the links'
+    # own rotation errors, which a few seam links of a fold barely move).
+    drift_sigmas: float = 5.0
     opposite_deg: float = 150.0      # observing rays farther apart than this: seen from both sides
     max_opposite: float = 0.02       # fold when more of the tracks are seen from both sides
 
@@ -185,29 +192,60 @@ def link_rotation_error(graph: MatchGraph, poses: ModelPoses, pair: tuple[int, i
     return _angle_deg(measured @ model.T)
 
 
+MAXWELL_MEDIAN = 1.5382  # median angle of a small rotation with N(0, s^2) per axis, in units of s
+
+
+def drift_bound(link_errors_deg, options: FoldOptions) -> float:
+    """The chained drift allowed to a chain whose links have these rotation errors (degrees):
+    max_rotation_drift_deg, or drift_sigmas x s x sqrt(links) for a long chain, s the per-axis
+    link noise estimated from the median link error."""
+    errors = np.asarray(link_errors_deg, float)
+    if len(errors) == 0:
+        return options.max_rotation_drift_deg
+    sigma = float(np.median(errors)) / MAXWELL_MEDIAN
+    return max(options.max_rotation_drift_deg, options.drift_sigmas * sigma * np.sqrt(len(errors)))
+
+
+def chained_drift(runs) -> tuple[list[float], list[float]]:
+    """(drift after each link, each link's own error), degrees, of chains of links given as runs
+    of (measured relative rotation, the model's) pairs: the measured rotations chained from the
+    start of their run against the model's chained the same way (R_last R_first^T)."""
+    drift, errors = [], []
+    for run in runs:
+        chained, model = np.eye(3), np.eye(3)
+        for measured, step in run:
+            chained, model = measured @ chained, step @ model
+            errors.append(_angle_deg(measured @ step.T))
+            drift.append(_angle_deg(chained @ model.T))
+    return drift, errors
+
+
 def rotation_chain(graph: MatchGraph, poses: ModelPoses, options: FoldOptions) -> dict:
     """Relative rotations of consecutive frames, chained along the capture order, against the
-    model's; and the closing error of the loop when the last frame matches the first."""
+    model's; each link's own error; the drift bound those link errors allow (drift_bound); and
+    the closing error of the loop when the last frame matches the first."""
     n = len(graph.names)
-    chained, drift, links = np.eye(3), [], 0
-    start = None
+    runs, start, chained = [], None, np.eye(3)
     for k in range(n - 1):
         r = relative_rotation(graph, poses, (k, k + 1))
         if r is None or k not in poses.world_to_cam or k + 1 not in poses.world_to_cam:
-            chained, start = np.eye(3), None  # a gap: restart the chain
+            start = None  # a gap: restart the chain
             continue
         if start is None:
             start, chained = k, np.eye(3)
+            runs.append([])
         chained = r @ chained
-        links += 1
-        model = poses.world_to_cam[k + 1][:3, :3] @ poses.world_to_cam[start][:3, :3].T
-        drift.append(_angle_deg(chained @ model.T))
+        runs[-1].append((r, poses.world_to_cam[k + 1][:3, :3] @ poses.world_to_cam[k][:3, :3].T))
+    drift, errors = chained_drift(runs)
     closure = None
     if start == 0 and (0, n - 1) in graph.pairs:
         r = relative_rotation(graph, poses, (0, n - 1))  # R_last R_first^T measured directly
         if r is not None:
             closure = _angle_deg(r @ chained.T)
-    return {"num_links": links, "max_drift_deg": round(max(drift), 3) if drift else None,
+    return {"num_links": len(errors), "max_drift_deg": round(max(drift), 3) if drift else None,
+            "link_error_median_deg": round(float(np.median(errors)), 3) if errors else None,
+            "link_error_max_deg": round(max(errors), 3) if errors else None,
+            "drift_bound_deg": round(drift_bound(errors, options), 3),
             "loop_closure_deg": None if closure is None else round(closure, 3)}
 
 
@@ -295,10 +333,11 @@ def diagnose(graph: MatchGraph, mapped_graph: MatchGraph, poses: ModelPoses, rec
         if neighbours["num_contradicted"] > options.max_contradicted:
             reasons.append(f"{neighbours['num_contradicted']} of {neighbours['num_checked']} neighbour "
                            "pairs in the capture order contradict the final poses")
-        if (chained["max_drift_deg"] or 0.0) > options.max_rotation_drift_deg:
+        if (chained["max_drift_deg"] or 0.0) > chained["drift_bound_deg"]:
             reasons.append(f"the relative rotations of consecutive frames, chained along the capture order, "
                            f"drift {chained['max_drift_deg']:.0f} degrees from the model's (more than "
-                           f"{options.max_rotation_drift_deg:g})")
+                           f"{chained['drift_bound_deg']:.0f}, which {chained['num_links']} links of median error "
+                           f"{chained['link_error_median_deg']:.2g} degrees allow)")
     if chain is not None:  # an empty chain (nothing mapped from neighbours alone) confirms no view
         consistency = chain_consistency(poses, chain, graph, options, mapped_graph, reached)
         report["chain_consistency"] = consistency

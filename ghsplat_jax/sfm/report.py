@@ -118,6 +118,14 @@ def summary_text(report: dict) -> str:
                      f"{report['mean_reprojection_error_px']:.3f} px, mean track length "
                      f"{report['track_length']['mean']:.2f}.")
     lines.extend(_fold_lines(report))
+    check = report.get("cross_check")
+    if check:
+        dropped = check.get("dropped", [])
+        lines.append(f"Cross-check: {check['num_confirmed']} of {check['num_views'] + len(dropped)} views re-localised "
+                     "with themselves left out"
+                     + (f"; {len(dropped)} landed elsewhere or could not be confirmed and were left out "
+                        f"({', '.join(dropped[:10])}{', ...' if len(dropped) > 10 else ''})."
+                        if dropped else "; none lands elsewhere."))
     alignment = report.get("alignment", {})
     if alignment.get("method") == "greenhouse":
         lines.append(f"Aligned: up from {alignment['up_source']}, row from {alignment['row_source']}, "

@@ -7,6 +7,10 @@
   row only: the paper captured each row as two segments, one from each end.
 - "robot": a ground robot drives down the aisle on each side of the row at constant speed
   with a side-looking camera at robot height.
+- "orbit": a turntable-like ring round one plant of the row (`PathConfig.plant`, default the
+  middle one) at `orbit_radius`, evenly spaced, looking at the plant, with small smooth height
+  and angle jitter; the last view is a neighbour of the first (a closed loop). Give the plant
+  room (e.g. a scene of one plant per row): the ring passes through its row-neighbours' places.
 
 Frames are uniform in time (frame i at i / fps); `frame_times(n, fps)` gives the stamps.
 """
@@ -34,6 +38,8 @@ class PathConfig:
     end: str | None = None          # handheld: None walks round the whole row; "x0" / "x1" walks a
     #                                 U round that end only (one row segment, as the paper captured)
     segment_fraction: float = 0.5   # share of the row's length a one-end walk covers
+    plant: int | None = None        # orbit: index of the plant along the row (default: the middle one)
+    orbit_radius: float = 0.7       # orbit: ring radius round the plant, metres
 
 
 def frame_times(n_views: int, fps: float) -> np.ndarray:
@@ -108,7 +114,8 @@ def _stadium(row, d: float, slowdown: float, n_views: int, end: str | None = Non
 def capture_path(scene: Scene, kind: str = "handheld", n_views: int = 40, *, row: int = 0,
                  width: int = 640, height: int = 480, seed: int = 0,
                  config: PathConfig | None = None) -> list[Camera]:
-    """Cameras along a hand-held walk around row `row` or robot drives along its aisles."""
+    """Cameras along a hand-held walk around row `row`, robot drives along its aisles, or a
+    ring round one of its plants ("orbit")."""
     pc = config or PathConfig()
     if not 0 <= row < len(scene.rows):
         raise ValueError(f"row {row} does not exist (scene has {len(scene.rows)} rows)")
@@ -146,4 +153,21 @@ def capture_path(scene: Scene, kind: str = "handheld", n_views: int = 40, *, row
                 cams.append(_camera(eye, [x, r.y, h + 0.1], K, width, height, jitter))
         return cams
 
-    raise ValueError(f"unknown capture path kind {kind!r} (use 'handheld' or 'robot')")
+    if kind == "orbit":
+        h = pc.height if pc.height is not None else 1.1
+        count = scene.config.layout.plants_per_row
+        plant = count // 2 if pc.plant is None else pc.plant
+        if not 0 <= plant < count:
+            raise ValueError(f"plant {plant} does not exist (row has {count} plants)")
+        if pc.orbit_radius <= 0:
+            raise ValueError(f"orbit_radius must be > 0, got {pc.orbit_radius}")
+        centre = np.array([(plant + 0.5) * scene.config.layout.plant_spacing, r.y])
+        phase = np.arange(n_views) / n_views
+        angle = 2 * np.pi * phase - np.pi / 2  # starts on the -y side, turns counter-clockwise
+        heights = h + _smooth_jitter(rng, phase, pc.height_jitter / 3)
+        angles = np.stack([_smooth_jitter(rng, phase, np.deg2rad(pc.angle_jitter_deg) / 3) for _ in range(3)], -1)
+        pos = centre + pc.orbit_radius * np.stack([np.cos(angle), np.sin(angle)], -1)
+        return [_camera([*p, z], [*centre, pc.target_height], K, width, height, a)
+                for p, z, a in zip(pos, heights, angles)]
+
+    raise ValueError(f"unknown capture path kind {kind!r} (use 'handheld', 'robot' or 'orbit')")
