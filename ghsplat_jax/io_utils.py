@@ -121,8 +121,41 @@ def machine_info(start_backend: bool = True) -> dict:
             "cpu_simd": _cpu_simd(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
             "jax": jax.__version__}
     if start_backend:
-        info.update(jax_backend=jax.default_backend(), device=device_name())
+        info.update(jax_backend=jax.default_backend(), device=device_name(),
+                    reference_kernel_s=reference_kernel_seconds())
     return dict(info, load_average=list(os.getloadavg()))
+
+
+_REFERENCE_SECONDS: list[float] = []
+
+
+def reference_kernel_seconds(repeats: int = 7) -> float:
+    """Median seconds of a fixed jitted kernel on the default device, measured once per process:
+    a yardstick recorded beside step times, so times from different hosts (or one host under
+    different loads) can be compared as ratios to it. The kernel mixes what a training step does:
+    an exponential, a running product along rows (transmittance), a gather and a small matmul."""
+    if _REFERENCE_SECONDS:
+        return _REFERENCE_SECONDS[0]
+    import time
+
+    import jax
+    import jax.numpy as jnp
+
+    @jax.jit
+    def kernel(x, idx):
+        t = jnp.cumprod(1.0 - 0.5 * jnp.exp(-x * x), axis=1)
+        return jnp.sum(t[idx] @ x[:256].T)
+
+    x = jax.random.uniform(jax.random.PRNGKey(0), (2048, 512), jnp.float32)
+    idx = jax.random.randint(jax.random.PRNGKey(1), (4096,), 0, 2048)
+    kernel(x, idx).block_until_ready()  # compile
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        kernel(x, idx).block_until_ready()
+        times.append(time.perf_counter() - t0)
+    _REFERENCE_SECONDS.append(round(sorted(times)[len(times) // 2], 6))
+    return _REFERENCE_SECONDS[0]
 
 
 def code_revision() -> str:
