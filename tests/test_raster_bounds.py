@@ -141,3 +141,24 @@ def test_host_and_device_sorts_bin_the_same_pairs(monkeypatch):
     assert not binning.host_sorts("auto", 4096)  # small sorts stay in XLA (and its compilation cache)
     with pytest.raises(ValueError, match="sort"):
         gs.RasterConfig(sort="numpy")
+
+
+def test_eager_renders_along_a_moving_camera_compile_a_few_times():
+    """A camera walking towards a scene needs more tile-surfel pairs every frame; eager renders
+    reuse the compiled buffer while it fits and grow it with headroom, so 8 poses compile a
+    handful of programs, not one per capacity bucket crossed."""
+    from ghsplat_jax.raster.render import _EAGER_CAPACITY, rasterize_jit, render
+
+    scene = random_scene(1500, seed=3)
+    cfg = gs.RasterConfig(tile_size=8)
+    _EAGER_CAPACITY.clear()
+    before = rasterize_jit._cache_size()
+    needs, used = [], []
+    for k in range(8):
+        cam = camera(96, 72, eye=(0.0, -4.5 + 0.3 * k, 1.0))
+        out = render(scene, cam, cfg)
+        needs.append(int(out.stats.num_pairs))
+        used.append(max(_EAGER_CAPACITY.values()))
+    compiles = rasterize_jit._cache_size() - before
+    assert needs[-1] > 1.9 * needs[0]  # 4.9k to 9.7k pairs: sized per frame, 5 buckets and 5 compiles
+    assert all(u >= n for u, n in zip(used, needs)) and compiles <= 2, (needs, used, compiles)

@@ -8,6 +8,8 @@ uses `config.pair_capacity` and reports (or raises on) overflow.
 
 from __future__ import annotations
 
+import logging
+
 import jax
 import jax.numpy as jnp
 
@@ -17,6 +19,8 @@ from ghsplat_jax.raster import binning, carried, composite, naive
 from ghsplat_jax.raster.config import RasterConfig, RasterOverflowError, RasterStats, RenderOutput
 from ghsplat_jax.raster.project import Projected, project
 from ghsplat_jax.raster.samples import PixelSamples
+
+log = logging.getLogger("ghsplat.raster")
 
 MIN_CAPACITY = 1 << 12
 
@@ -216,12 +220,34 @@ def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
     if s.means.shape[0] == 0:
         return _empty(cam, cfg, samples)
     needed, fullest = (int(x) for x in count_pairs(s, cam, binning_config(cfg), samples is not None))
-    capacity = capacity_bucket(max(needed, cfg.pair_capacity or 0))
+    capacity = eager_capacity(max(needed, cfg.pair_capacity or 0),
+                              (s.means.shape[0], s.sh_degree, cam.width, cam.height, cfg, samples is not None))
     slots = max(32, 1 << max(fullest - 1, 0).bit_length()) if cfg.backend == "dense" else None
     out = rasterize_jit(s, cam, cfg, capacity, means2d_probe, slots, samples)
     if int(out.stats.overflow):  # the count is exact, so this is a bug: never return a partial image
         raise RasterOverflowError(f"pair count {needed} disagreed with the render ({int(out.stats.num_pairs)})")
     return out
+
+
+# The pair capacity eager renders of one scene, size and setting last compiled for: a camera moving
+# through a scene needs a different count every frame, and a capacity per frame's bucket would
+# compile again each time the count crosses one (100k surfels at 640x480: 7 s a stall).
+_EAGER_CAPACITY: dict[tuple, int] = {}
+
+
+def eager_capacity(needed: int, key: tuple) -> int:
+    """The capacity an eager render uses for `needed` pairs: the one already compiled for `key`
+    when it fits (and is at most 4x the need), else the bucket of 1.5x the need, so a count that
+    keeps growing recompiles a few times, not at every bucket; each recompile is logged."""
+    have = _EAGER_CAPACITY.get(key)
+    if have is not None and needed <= have <= 4 * max(needed, MIN_CAPACITY):
+        return have
+    capacity = capacity_bucket(needed if have is None else int(1.5 * needed))
+    if have is not None:
+        log.info("render: %d tile-surfel pairs needed, the compiled buffer holds %d; compiling for %d", needed, have,
+                 capacity)
+    _EAGER_CAPACITY[key] = capacity
+    return capacity
 
 
 def capacity_for_views(s: Surfels, cameras, cfg: RasterConfig | None = None) -> int | None:
