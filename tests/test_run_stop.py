@@ -105,3 +105,33 @@ def test_stop_at_trains_to_the_step_then_the_run_resumes_and_evaluation_names_it
     assert set(m["outlier_views"]) == {"train", "test"} and isinstance(m["warnings"], list)
     assert m["train_test_gap_db"] == m["train"]["psnr"] - m["test"]["psnr"]
     assert "structure_psnr" in m["test"] and "structure_gap_db" in m
+
+
+def test_a_run_without_enough_points_starts_from_triangulated_ones(tmp_path, monkeypatch):
+    from ghsplat_jax.sfm import triangulate
+
+    ds = cached_synthetic_dataset(num_views=6, width=32, height=24, num_surfels=40, test_every=3, num_points=200)
+    data = write_transforms(ds, tmp_path / "tiny")
+    f = tmp_path / "e.toml"
+    f.write_text(f'name = "e"\noutput = "{(tmp_path / "runs").as_posix()}"\n[train]\ninit_min_points = 500\n'
+                 f'[[scenes]]\nname = "s"\ndata = "{data.as_posix()}"\n')
+    exp = load_experiment(f)
+    calls, given = [], []
+    monkeypatch.setattr(triangulate, "with_triangulated_points",
+                        lambda dataset, n, out: calls.append((n, out)) or "triangulated")
+    monkeypatch.setattr(runner, "train_and_evaluate", lambda config, out_dir, resume, **kw: given.append(kw))
+    monkeypatch.setattr(runner, "collect", lambda exp: ([], []))
+    run_experiment(exp)
+    assert calls == [(500, exp.runs[0].out_dir)] and given == [{"dataset": "triangulated"}]
+    _fake_checkpoint(exp.runs[0].out_dir, 3)  # resuming: the checkpoint holds the surfels
+    run_experiment(exp)
+    assert len(calls) == 1 and given[-1] == {}
+
+
+def test_stop_at_needs_a_positive_step(tmp_path, capsys):
+    from ghsplat_jax import cli
+
+    f = tmp_path / "e.toml"
+    f.write_text(TWO.format(out=(tmp_path / "runs").as_posix()))
+    assert cli.main(["run", str(f), "--stop-at", "0"]) == 2
+    assert "--stop-at must be a step >= 1" in capsys.readouterr().err

@@ -249,8 +249,12 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
         run = resolve_count(run, all_runs or [], reported)
         log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir,
                  run.config.strategy.name, f", max_surfels {run.config.strategy.max_surfels}" if run.count_fraction else "")
-        stop = {} if until is None else {"until": int(until)}  # train_and_evaluate's own default otherwise
-        train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir), **stop)
+        kw = {} if until is None else {"until": int(until)}  # train_and_evaluate's own default otherwise
+        resume = has_checkpoint(run.out_dir)
+        dataset = None if resume else triangulated_data(run)
+        if dataset is not None:
+            kw["dataset"] = dataset
+        train_and_evaluate(run.config, run.out_dir, resume=resume, **kw)
     except KeyboardInterrupt:
         raise
     except Exception as exc:
@@ -259,6 +263,22 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
         log.debug(traceback.format_exc())
         return msg
     return None
+
+
+def triangulated_data(run: PlannedRun):
+    """The run's dataset with points triangulated from its cameras (sfm/triangulate.py, into
+    RUN/triangulated.ply) when it has fewer SfM points than init_min_points, else as read (training
+    takes it rather than reading it again); None when it cannot be read here: training then reads
+    it and reports the problem itself."""
+    from ghsplat_jax.sfm.triangulate import with_triangulated_points
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    try:
+        dataset = load_training_data(run.config)
+    except (ValueError, OSError) as exc:
+        log.debug("%s/%s: data not read before training (%s)", run.scene, run.variant, exc)
+        return None
+    return with_triangulated_points(dataset, run.config.init_min_points, run.out_dir)
 
 
 def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None, reported=None,
