@@ -135,3 +135,15 @@ def test_stop_at_needs_a_positive_step(tmp_path, capsys):
     f.write_text(TWO.format(out=(tmp_path / "runs").as_posix()))
     assert cli.main(["run", str(f), "--stop-at", "0"]) == 2
     assert "--stop-at must be a step >= 1" in capsys.readouterr().err
+
+
+def test_list_names_a_reported_run_whose_folder_is_gone(tmp_path, capsys):
+    from ghsplat_jax import cli
+
+    f = tmp_path / "e.toml"
+    f.write_text(TWO.format(out=(tmp_path / "runs").as_posix()))
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "results.json").write_text(json.dumps({"rows": [{"scene": "a", "variant": "default"}]}))
+    assert cli.main(["run", str(f), "--list"]) == 0
+    out = capsys.readouterr().out
+    assert "a/default: reported (its folder is gone" in out and "b/default: todo" in out

@@ -67,8 +67,15 @@ def main(args) -> int:
             return 2
         return _run_stability(exp, args)
     if args.list:
+        from ghsplat_jax.experiments.report import RESULTS_NAME
+        from ghsplat_jax.experiments.runner import earlier_rows, is_reported
+
+        earlier = earlier_rows(exp.results / RESULTS_NAME)
         for r in exp.runs:
-            print(f"{r.scene}/{r.variant}: {r.state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
+            state = r.state
+            if state == "todo" and is_reported(earlier.get((r.scene, r.variant))):
+                state = "reported (its folder is gone; --retrain trains it again)"
+            print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
                   f"strategy={r.config.strategy.name})")
         return 0
     if args.executor != "ray" and (args.address or args.cpus_per_run or args.gpus_per_run):

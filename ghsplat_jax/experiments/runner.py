@@ -308,7 +308,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     if until is not None and until < 1:
         raise ValueError(f"until must be a step >= 1, got {until}")
     results = Path(exp.results) / RESULTS_NAME
-    earlier = _earlier_rows(results)
+    earlier = earlier_rows(results)
     selected = [r for r in exp.runs if r.scene not in exclude
                 and (not only or r.scene in only or f"{r.scene}/{r.variant}" in only)]
     todo = [] if evaluate_only else [r for r in selected if not r.finished]
@@ -344,7 +344,7 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
     return {"rows": rows, "failed": failed, "reports": reports}
 
 
-def _earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
+def earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
     """The rows of the experiment's last report, its results.json at `path`, by (scene, variant)."""
     try:
         rows = json.loads(path.read_text())["rows"] if path.is_file() else []
@@ -395,7 +395,7 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     from ghsplat_jax.experiments.report import RESULTS_NAME, run_row, write_results, write_table1
 
     report = Path(exp.results) / RESULTS_NAME
-    rows, earlier = [], _earlier_rows(report)
+    rows, earlier = [], earlier_rows(report)
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
         if row is not None:
