@@ -138,12 +138,13 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
 
     outliers = {}
     for split in ("train", "test"):
-        found = psnr_outliers([r for r in rows if r["split"] == split])
+        views = [r for r in rows if r["split"] == split]
+        found = psnr_outliers(views)
         outliers[split] = found
         if found:
-            median = metrics[split]["psnr"]
+            median = float(np.median([r["psnr"] for r in views]))
             listed = ", ".join(f"{o['name']} ({o['psnr']:.2f} dB)" for o in found)
-            warn(f"{len(found)} {split} view(s) far below the split's PSNR (mean {median:.2f} dB): {listed}. "
+            warn(f"{len(found)} {split} view(s) far below the split's median PSNR ({median:.2f} dB): {listed}. "
                  "A view much worse than its neighbours hints at a bad pose (the SfM registered it wrongly) or a "
                  "bad image (blur, exposure, a moving object): look at its render beside the photo, and drop or "
                  "re-register it")
