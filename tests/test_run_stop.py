@@ -100,6 +100,7 @@ def test_stop_at_trains_to_the_step_then_the_run_resumes_and_evaluation_names_it
     assert [r["status"] for r in result["rows"]] == ["stopped at step 6 of 12"]
     result = run_experiment(exp)
     assert result["failed"] == [] and [r["status"] for r in result["rows"]] == ["finished"]
+    assert result["rows"][0]["structure_psnr"] is not None  # the results table shows the structure score
     m = read_metrics(run.out_dir)
     assert m["steps"] == 12
     assert set(m["outlier_views"]) == {"train", "test"} and isinstance(m["warnings"], list)

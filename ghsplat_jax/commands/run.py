@@ -115,9 +115,9 @@ def main(args) -> int:
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
     stopped = [r for r in result["rows"] if r.get("status", "finished") != "finished"]
+    listed = ", ".join(f"{r['scene']}/{r['variant']}: {r['status']}" for r in stopped)
     print(f"{len(result['rows']) - len(stopped)} finished runs"
-          + (f", {len(stopped)} not finished ({', '.join(r['scene'] + '/' + r['variant'] + ': ' + r['status'] for r in stopped)})"
-             if stopped else "")
+          + (f", {len(stopped)} not finished ({listed})" if stopped else "")
           + "; reports: " + ", ".join(str(p) for p in result["reports"]))
     return 1 if result["failed"] else 0
 

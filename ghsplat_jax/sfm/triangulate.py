@@ -105,11 +105,18 @@ def _extract_and_match(pycolmap, database: Path, images: Path, names: list[str],
     pycolmap.match_exhaustive(database, **match_kwargs)
 
 
+def _open_database(pycolmap, database: Path):
+    """pycolmap >= 3.12 opens with Database.open, older versions with the constructor."""
+    if hasattr(pycolmap.Database, "open"):
+        return pycolmap.Database.open(str(database))
+    return pycolmap.Database(str(database))
+
+
 def _known_model(pycolmap, database: Path, views, names: list[str]):
     """A reconstruction of the database's cameras and images (their ids) with the views'
     intrinsics and poses and the database's keypoints."""
     by_name = dict(zip(names, views))
-    db = pycolmap.Database.open(str(database)) if hasattr(pycolmap.Database, "open") else pycolmap.Database(str(database))
+    db = _open_database(pycolmap, database)
     try:
         images = list(db.read_all_images())
         keypoints = {im.image_id: np.asarray(db.read_keypoints(im.image_id))[:, :2] for im in images}
@@ -180,7 +187,7 @@ def triangulate_known_cameras(views, work_dir, options: TriangulateOptions | Non
     tracks = np.array([p.track.length() for p in pts], np.float64)[keep]
     finite = np.isfinite(points).all(axis=1)
     points, colors, tracks = points[finite], colors[finite], tracks[finite]
-    db = pycolmap.Database.open(str(database)) if hasattr(pycolmap.Database, "open") else pycolmap.Database(str(database))
+    db = _open_database(pycolmap, database)
     try:
         pairs = int(db.num_verified_image_pairs()) if hasattr(db, "num_verified_image_pairs") else None
     finally:
