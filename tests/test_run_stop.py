@@ -80,7 +80,7 @@ def test_reported_runs_are_not_trained_again_unless_retrain(tmp_path, monkeypatc
     with caplog.at_level("INFO", logger="ghsplat.run"):
         run_experiment(exp)
     assert trained == [("b", {})]  # a stopped row is not a finished one
-    assert "a/default: no run folder" in caplog.text and "--retrain" in caplog.text
+    assert "a/default: no metrics.json or checkpoint" in caplog.text and "--retrain" in caplog.text
     trained.clear()
     run_experiment(exp, retrain=True, until=7)
     assert trained == [("a", {"until": 7}), ("b", {"until": 7})]

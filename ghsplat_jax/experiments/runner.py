@@ -319,8 +319,9 @@ def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error:
         skipped = [r for r in todo if is_reported(earlier.get((r.scene, r.variant))) and not has_checkpoint(r.out_dir)]
         for r in skipped:
             row = earlier[(r.scene, r.variant)]
-            log.info("%s/%s: no run folder, but %s reports it finished (PSNR %s, %s steps); not trained again "
-                     "(--retrain trains it again)", r.scene, r.variant, results, row.get("psnr"), row.get("steps"))
+            log.info("%s/%s: no metrics.json or checkpoint in %s, but %s reports it finished (PSNR %s, %s steps); "
+                     "not trained again (--retrain trains it again)", r.scene, r.variant, r.out_dir, results,
+                     row.get("psnr"), row.get("steps"))
         todo = [r for r in todo if r not in skipped]
     if executor not in ("local", "ray"):
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
