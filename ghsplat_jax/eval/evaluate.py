@@ -146,8 +146,8 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
             listed = ", ".join(f"{o['name']} ({o['psnr']:.2f} dB)" for o in found)
             warn(f"{len(found)} {split} view(s) far below the split's median PSNR ({median:.2f} dB): {listed}. "
                  "A view much worse than its neighbours hints at a bad pose (the SfM registered it wrongly) or a "
-                 "bad image (blur, exposure, a moving object): look at its render beside the photo, and drop or "
-                 "re-register it")
+                 "bad image (blur, exposure, a moving object), or, at the ends of a capture, at parts of the scene "
+                 "no other view covers: look at its render beside the photo, and drop or re-register a bad one")
     out = {"outlier_views": outliers}
     train, test = (metrics.get("train") or {}).get("psnr"), (metrics.get("test") or {}).get("psnr")
     gap = None if train is None or test is None else float(train - test)
