@@ -24,6 +24,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prepare-only", action="store_true",
                    help="only make the data of a file with [prepare] (photos and SfM), e.g. to train elsewhere")
     p.add_argument("--stop-on-error", action="store_true", help="stop at the first failed run")
+    p.add_argument("--stop-at", type=int, metavar="N",
+                   help="train every run to step N, checkpoint and stop (a later run without it resumes there); "
+                        "the reports mark such a run 'stopped at step N of M' rather than leaving it out")
+    p.add_argument("--retrain", action="store_true",
+                   help="train again a run whose folder is gone although the experiment's results.json reports it "
+                        "finished. Without it such a run is skipped and its reported row kept: a lost runs folder "
+                        "must not cost hours of training to reproduce numbers already reported (the log names each "
+                        "run skipped so)")
     g = p.add_argument_group("executor")
     g.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local: one run after another here (default); ray: one Ray task per run "
@@ -53,10 +61,21 @@ def main(args) -> int:
             print(f"ghsplat run: {exp.source}: --prepare-only applies to [prepare] segments, not a stability study",
                   file=sys.stderr)
             return 2
+        if args.stop_at is not None or args.retrain:
+            print(f"ghsplat run: {exp.source}: --stop-at and --retrain apply to scenes x variants, not a stability "
+                  "study", file=sys.stderr)
+            return 2
         return _run_stability(exp, args)
     if args.list:
+        from ghsplat_jax.experiments.report import RESULTS_NAME
+        from ghsplat_jax.experiments.runner import earlier_rows, is_reported
+
+        earlier = earlier_rows(exp.results / RESULTS_NAME)
         for r in exp.runs:
-            print(f"{r.scene}/{r.variant}: {r.state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
+            state = r.state
+            if state == "todo" and is_reported(earlier.get((r.scene, r.variant))):
+                state = "reported (its folder is gone; --retrain trains it again)"
+            print(f"{r.scene}/{r.variant}: {state}  {r.out_dir}  (data={r.config.data}, steps={r.config.steps}, "
                   f"strategy={r.config.strategy.name})")
         return 0
     if args.executor != "ray" and (args.address or args.cpus_per_run or args.gpus_per_run):
@@ -69,6 +88,9 @@ def main(args) -> int:
         except ImportError:
             print('ghsplat run: --executor ray needs Ray: pip install -e ".[ray]"', file=sys.stderr)
             return 2
+    if args.stop_at is not None and args.stop_at < 1:
+        print(f"ghsplat run: --stop-at must be a step >= 1, got {args.stop_at}", file=sys.stderr)
+        return 2
     if args.report_only and args.prepare_only:
         print("ghsplat run: --report-only and --prepare-only exclude each other", file=sys.stderr)
         return 2
@@ -87,11 +109,16 @@ def main(args) -> int:
         print(f"data made; report: {exp.results / 'segments.md'}")
         return 1 if unusable else 0
     result = run_experiment(exp, set(args.only) or None, args.stop_on_error, evaluate_only=args.report_only,
-                            executor=args.executor, ray_options=ray_options, exclude=set(unusable))
+                            executor=args.executor, ray_options=ray_options, exclude=set(unusable),
+                            until=args.stop_at, retrain=args.retrain)
     result["failed"] = list(unusable.items()) + result["failed"]
     for run, msg in result["failed"]:
         print(f"ghsplat run: {run} failed: {msg}", file=sys.stderr)
-    print(f"{len(result['rows'])} finished runs; reports: " + ", ".join(str(p) for p in result["reports"]))
+    stopped = [r for r in result["rows"] if r.get("status", "finished") != "finished"]
+    listed = ", ".join(f"{r['scene']}/{r['variant']}: {r['status']}" for r in stopped)
+    print(f"{len(result['rows']) - len(stopped)} finished runs"
+          + (f", {len(stopped)} not finished ({listed})" if stopped else "")
+          + "; reports: " + ", ".join(str(p) for p in result["reports"]))
     return 1 if result["failed"] else 0
 
 

@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz with OUT/config.toml")
     p.add_argument("--until", type=int, help="stop after this step with a checkpoint (continue with --resume)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
+    p.add_argument("--no-triangulate", action="store_true",
+                   help="a dataset with cameras but fewer SfM points than init_min_points starts from random points "
+                        "(by default its points are first triangulated from the known cameras into "
+                        "OUT/triangulated.ply, with pycolmap)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -78,6 +82,15 @@ def resolve_config(args):
     return apply_overrides(config, overrides, "command line")
 
 
+def dataset_with_points(config, out):
+    """The run's dataset, with points triangulated from its cameras when it has too few SfM
+    points (sfm/triangulate.py; the points go to OUT/triangulated.ply)."""
+    from ghsplat_jax.sfm.triangulate import with_triangulated_points
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    return with_triangulated_points(load_training_data(config), config.init_min_points, out)
+
+
 def main(args) -> int:
     from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train import ConfigError, TrainingDivergedError
@@ -85,8 +98,12 @@ def main(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         config = resolve_config(args)
+        from ghsplat_jax.train.run_dir import has_checkpoint
+
+        resuming = args.resume and has_checkpoint(args.out)  # the checkpoint holds the surfels
+        dataset = None if resuming or args.no_triangulate else dataset_with_points(config, args.out)
         metrics = train_and_evaluate(config, args.out, resume=args.resume, evaluate=not args.no_eval,
-                                     until=args.until)
+                                     until=args.until, dataset=dataset)
     except (ConfigError, TrainingDivergedError, FileNotFoundError) as exc:
         print(f"ghsplat train: {exc}", file=sys.stderr)
         return 2

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.eval.metrics import background_cover, image_metrics, summarize
+from ghsplat_jax.eval.metrics import (TRAIN_TEST_GAP_DB, background_cover, image_metrics, psnr_outliers,
+                                      structure_gap, structure_metrics, summarize)
 from ghsplat_jax.io_utils import code_revision, device_name, machine_info
 from ghsplat_jax.train import run_dir as rd
 
@@ -94,7 +95,8 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             jax.block_until_ready(out.rgb)
             dt = time.perf_counter() - t
             times.append(dt)
-            m = image_metrics(out.rgb, v.image) | background_cover(out.alpha, v.alpha)
+            m = (image_metrics(out.rgb, v.image) | structure_metrics(out.rgb, v.image, v.alpha)
+                 | background_cover(out.alpha, v.alpha))
             if not all(math.isfinite(x) for x in m.values()):
                 raise FloatingPointError(f"view {v.name}: non-finite metrics {m}")
             rows.append(dict(split=split, name=v.name, render_seconds=dt, **m))
@@ -116,8 +118,58 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
         "device": device_name(),  # where it trained and rendered (the timings above depend on it)
     }
     metrics.update(extra or {})
+    metrics.update(diagnose(metrics, rows, where=out_dir))
     rd.write_metrics(out_dir, metrics, rows)
     return metrics
+
+
+def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TEST_GAP_DB) -> dict:
+    """What evaluation must not leave silent, as metrics.json entries, each also logged as a
+    warning that says what it hints at and what to do:
+    `outlier_views` {split: [{name, psnr, below_median_db}]} (views far below their split's
+    median: metrics.psnr_outliers), `train_test_gap_db` (training minus test PSNR; over
+    `gap_db` is over-fitting), `structure_gap_db` {split: dB} (the structure PSNR far below the
+    whole image's: the model misses the subject), and `warnings`, the logged texts."""
+    warnings = []
+
+    def warn(text: str) -> None:
+        log.warning("%s: %s", where, text) if where else log.warning("%s", text)
+        warnings.append(text)
+
+    outliers = {}
+    for split in ("train", "test"):
+        views = [r for r in rows if r["split"] == split]
+        found = psnr_outliers(views)
+        outliers[split] = found
+        if found:
+            median = float(np.median([r["psnr"] for r in views]))
+            listed = ", ".join(f"{o['name']} ({o['psnr']:.2f} dB)" for o in found)
+            warn(f"{len(found)} {split} view(s) far below the split's median PSNR ({median:.2f} dB): {listed}. "
+                 "A view much worse than its neighbours hints at a bad pose (the SfM registered it wrongly) or a "
+                 "bad image (blur, exposure, a moving object), or, at the ends of a capture, at parts of the scene "
+                 "no other view covers: look at its render beside the photo, and drop or re-register a bad one")
+    out = {"outlier_views": outliers}
+    train, test = (metrics.get("train") or {}).get("psnr"), (metrics.get("test") or {}).get("psnr")
+    gap = None if train is None or test is None else float(train - test)
+    out["train_test_gap_db"] = gap
+    if gap is not None and gap > gap_db:
+        warn(f"the training views' PSNR ({train:.2f} dB) exceeds the test views' ({test:.2f} dB) by {gap:.1f} dB "
+             f"(more than {gap_db:g}): the model over-fits the training views. Use fewer surfels (--strategy "
+             "budget or mcmc with --max-surfels), more views, or `--recipe auto`, which stops when held-out views "
+             "stop improving")
+    gaps = {}
+    for split in ("train", "test"):
+        s = metrics.get(split) or {}
+        g = structure_gap(s)
+        if g is not None:
+            gaps[split] = g
+            warn(f"{split} views: the PSNR where the photos show structure ({s['structure_psnr']:.2f} dB) is "
+                 f"{g:.1f} dB below the whole image's ({s['psnr']:.2f} dB): the model misses what the photos show "
+                 "(e.g. a thin plant on a plain background) and the whole-image score hides it. Look at the test "
+                 "renders; check the initial points cover the subject, and train longer or at full resolution")
+    out["structure_gap_db"] = gaps
+    out["warnings"] = warnings
+    return out
 
 
 def test_curve_metrics(dataset, config):

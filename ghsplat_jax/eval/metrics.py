@@ -1,5 +1,6 @@
-"""Image metrics (PSNR, L1, SSIM and, for images with alpha, the background cover) of one
-rendered view and their per-split summary."""
+"""Image metrics (PSNR, L1, SSIM, the structure PSNR and L1 and, for images with alpha, the
+background cover) of one rendered view, their per-split summary, and the checks evaluation
+warns with: views far below their split, a train-test gap, a structure gap."""
 
 from __future__ import annotations
 
@@ -48,8 +49,107 @@ def background_cover(rendered_alpha, image_alpha) -> dict[str, float]:
 
 def summarize(rows: list[dict]) -> dict:
     """Mean of each metric over views (PSNR averaged per view, as the 3DGS papers do); the
-    background metrics when every view has them."""
+    background metrics when every view has them; the structure metrics over the views that
+    have them (`structure_views` of them)."""
     if not rows:
         return {k: None for k in METRICS} | {"num_views": 0}
     keys = METRICS + tuple(k for k in BACKGROUND_METRICS if all(k in r for r in rows))
-    return {k: float(np.mean([r[k] for r in rows])) for k in keys} | {"num_views": len(rows)}
+    out = {k: float(np.mean([r[k] for r in rows])) for k in keys} | {"num_views": len(rows)}
+    structured = [r for r in rows if all(k in r for k in STRUCTURE_METRICS)]
+    if structured:  # views of a flat photo have none: the mean over those that have
+        out |= {k: float(np.mean([r[k] for r in structured])) for k in STRUCTURE_METRICS}
+        out["structure_views"] = len(structured)
+    return out
+
+
+# ---------------------------------------------------------------- structure: what the photo shows
+# Whole-image metrics of a thin plant on a black background stay high when the model renders
+# only the background. The structure metrics score the pixels where the photo has something to
+# show: its foreground where the image has alpha, else where its gradient is strong.
+STRUCTURE_METRICS = ("structure_psnr", "structure_l1")
+STRUCTURE_PERCENTILE = 80.0  # gradient magnitude above this percentile of the image is structure
+STRUCTURE_DILATE = 0  # pixels the structure mask grows by (the contrast already marks both sides of an edge)
+STRUCTURE_MIN_GRADIENT = 1e-3  # a flat image has no structure, whatever its percentiles
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Square dilation by `radius` pixels (no SciPy needed)."""
+    out = mask.copy()
+    h, w = mask.shape
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dy == 0 and dx == 0:
+                continue
+            ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+            xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+            out[yd, xd] |= mask[ys, xs]
+    return out
+
+
+def structure_mask(target, alpha=None, percentile: float = STRUCTURE_PERCENTILE,
+                   dilate: int = STRUCTURE_DILATE) -> np.ndarray:
+    """(H,W) bool: the pixels where the ground-truth photo has structure. With an alpha that
+    has both foreground and empty pixels, its foreground (alpha >= 0.5); else the pixels whose
+    grey-level contrast (the largest absolute difference to a 4-neighbour, so both sides of an
+    edge and the whole of a one-pixel line count) is above the image's `percentile` (and not
+    ~0), dilated by `dilate` pixels. All False for a flat image."""
+    if alpha is not None:
+        fg = np.asarray(alpha) >= 0.5
+        if fg.any() and not fg.all():
+            return fg
+    grey = np.asarray(target, np.float32).mean(axis=-1)
+    mag = np.zeros_like(grey)
+    dy, dx = np.abs(np.diff(grey, axis=0)), np.abs(np.diff(grey, axis=1))
+    mag[1:] = np.maximum(mag[1:], dy)
+    mag[:-1] = np.maximum(mag[:-1], dy)
+    mag[:, 1:] = np.maximum(mag[:, 1:], dx)
+    mag[:, :-1] = np.maximum(mag[:, :-1], dx)
+    threshold = max(float(np.percentile(mag, percentile)), STRUCTURE_MIN_GRADIENT)
+    mask = mag > threshold
+    return _dilate(mask, dilate) if dilate > 0 and mask.any() else mask
+
+
+def structure_metrics(rendered, target, alpha=None) -> dict[str, float]:
+    """PSNR and L1 over `structure_mask` (the render clipped to [0, 1]); {} when the photo has
+    no structure."""
+    target = np.asarray(target, np.float32)
+    mask = structure_mask(target, alpha)
+    if not mask.any():
+        return {}
+    diff = np.clip(np.asarray(rendered, np.float32), 0.0, 1.0)[mask] - target[mask]
+    mse = max(float(np.mean(diff ** 2)), 1e-20)
+    return {"structure_psnr": float(-10.0 * np.log10(mse)), "structure_l1": float(np.mean(np.abs(diff)))}
+
+
+STRUCTURE_GAP_DB = 10.0  # structure PSNR this far below the whole image's: the model misses the subject
+
+
+def structure_gap(summary: dict, threshold_db: float = STRUCTURE_GAP_DB) -> float | None:
+    """Whole-image PSNR minus structure PSNR of a split summary when above `threshold_db`, else None."""
+    whole, struct = summary.get("psnr"), summary.get("structure_psnr")
+    if whole is None or struct is None or whole - struct <= threshold_db:
+        return None
+    return float(whole - struct)
+
+
+# ---------------------------------------------------------------- views far below their split
+OUTLIER_MIN_DB = 3.0  # a view is an outlier when its PSNR is more than max(this, OUTLIER_MADS x MAD)
+OUTLIER_MADS = 4.0    # under the median of its split
+
+
+def psnr_outliers(rows: list[dict], min_db: float = OUTLIER_MIN_DB, mads: float = OUTLIER_MADS) -> list[dict]:
+    """Views whose PSNR is far below the median of `rows` (one split): more than
+    max(min_db, mads x the median absolute deviation) under it; worst first, each
+    {name, psnr, below_median_db}. Fewer than 3 views have no outlier."""
+    values = np.array([r["psnr"] for r in rows], np.float64)
+    if len(values) < 3:
+        return []
+    median = float(np.median(values))
+    mad = float(np.median(np.abs(values - median)))
+    margin = max(min_db, mads * mad)
+    out = [{"name": r["name"], "psnr": float(r["psnr"]), "below_median_db": median - float(r["psnr"])}
+           for r in rows if r["psnr"] < median - margin]
+    return sorted(out, key=lambda o: o["psnr"])
+
+
+TRAIN_TEST_GAP_DB = 6.0  # training views' PSNR this far above the test views': over-fitting

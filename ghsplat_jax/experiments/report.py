@@ -15,8 +15,8 @@ from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
 
 RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
-RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds",
-                  "step_seconds", "steps", "render_seconds_per_view", "device", "run_dir")
+RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "num_gaussians",
+                  "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device", "status", "run_dir")
 
 
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
@@ -30,7 +30,8 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
     s = m[split]
     return {
         "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
-        "psnr": s.get("psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"), "num_gaussians": m.get("num_gaussians"),
+        "psnr": s.get("psnr"), "structure_psnr": s.get("structure_psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"),
+        "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
         "render_seconds_per_view": m.get("render_seconds_per_view"), "device": m.get("device"),
         "run_dir": str(run_dir),
@@ -42,7 +43,8 @@ def collect_runs(run_dirs) -> list[dict]:
     return [r for r in rows if r is not None]
 
 
-_FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "ssim": "{:.3f}", "num_gaussians": "{:,}", "train_seconds": "{:.0f}",
+_FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "structure_psnr": "{:.2f}", "ssim": "{:.3f}", "num_gaussians": "{:,}",
+            "train_seconds": "{:.0f}",
             "step_seconds": "{:.3f}",
             "render_seconds_per_view": "{:.3f}"}
 
@@ -80,15 +82,26 @@ def table1_rows(rows: list[dict]) -> list[dict]:
     for r in rows:
         seg = r["scene"] if plain else f"{r['scene']} ({r['variant']})"
         out.append({"segment": seg, "l1": r["l1"], "psnr": r["psnr"], "num_gaussians": r["num_gaussians"],
-                    "split": r["split"], "steps": r["steps"]})
+                    "split": r["split"], "steps": r["steps"], "status": r.get("status") or "finished"})
     return out
+
+
+def _unfinished(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if (r.get("status") or "finished") != "finished"]
 
 
 def table1_markdown(rows: list[dict], title: str = "Table 1") -> str:
     t1 = table1_rows(rows)
-    text = [f"# {title}\n", markdown_table(t1, ("segment", "l1", "psnr", "num_gaussians", "split", "steps"),
-                                            ("Segment", "L1", "PSNR (dB)", "Gaussians", "split", "steps"))]
-    vals = [r for r in t1 if r["psnr"] is not None]
+    cols, heads = ("segment", "l1", "psnr", "num_gaussians", "split", "steps"), ("Segment", "L1", "PSNR (dB)",
+                                                                                 "Gaussians", "split", "steps")
+    stopped = _unfinished(t1)
+    if stopped:  # a stopped run keeps its row, marked, never silently left out
+        cols, heads = cols + ("status",), heads + ("status",)
+    text = [f"# {title}\n", markdown_table(t1, cols, heads)]
+    if stopped:
+        text.append(f"\n{len(stopped)} of {len(t1)} runs have not finished: their numbers (if any) are not final "
+                    "and are left out of the ranges below.\n")
+    vals = [r for r in t1 if r["psnr"] is not None and r not in stopped]
     if vals:
         rng = lambda k: (min(r[k] for r in vals), max(r[k] for r in vals))  # noqa: E731
         (l1a, l1b), (pa, pb), (na, nb) = rng("l1"), rng("psnr"), rng("num_gaussians")
@@ -106,19 +119,23 @@ def write_table1(rows: list[dict], folder, title: str = "Table 1") -> list[Path]
     with atomic_write(md, "w") as fh:
         fh.write(table1_markdown(rows, title))
     with atomic_write(csv_path, "w") as fh:
-        fh.write(csv_text(table1_rows(rows), ("segment", "l1", "psnr", "num_gaussians", "split", "steps")))
+        fh.write(csv_text(table1_rows(rows), ("segment", "l1", "psnr", "num_gaussians", "split", "steps", "status")))
     return [md, csv_path]
 
 
 def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path]:
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
-    cols = ("scene", "variant", "split", "psnr", "l1", "ssim", "num_gaussians", "train_seconds", "step_seconds",
-            "steps", "render_seconds_per_view", "device")
+    cols = ("scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "num_gaussians", "train_seconds",
+            "step_seconds", "steps", "render_seconds_per_view", "device", "status")
+    rows = [dict(r, status=r.get("status") or "finished") for r in rows]
+    stopped = _unfinished(rows)
+    note = (f"\n{len(stopped)} of {len(rows)} runs have not finished (status): their numbers are not final.\n"
+            if stopped else "")
     with atomic_write(md, "w") as fh:
-        fh.write(f"# {title}\n\n" + markdown_table(rows, cols, ("scene", "variant", "split", "PSNR (dB)", "L1",
-                                                                 "SSIM", "Gaussians", "train s", "median step s",
-                                                                 "steps", "render s/view", "device")))
+        heads = ("scene", "variant", "split", "PSNR (dB)", "structure PSNR", "L1", "SSIM", "Gaussians", "train s",
+                 "median step s", "steps", "render s/view", "device", "status")
+        fh.write(f"# {title}\n\n" + markdown_table(rows, cols, heads) + note)
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
     js = write_json(folder / RESULTS_NAME, {"title": title, "machine": machine_info(), "rows": rows})

@@ -41,6 +41,8 @@ from ghsplat_jax.train.run_dir import has_checkpoint, is_evaluated
 
 log = logging.getLogger("ghsplat.run")
 
+FINISHED = "finished"  # a report row's status; a stopped run's reads "stopped at step N of M"
+
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
@@ -233,11 +235,13 @@ def resolve_count(run: PlannedRun, runs: list[PlannedRun], reported: dict | None
     return dataclasses.replace(run, config=run.config.replace(**{"strategy.max_surfels": cap}))
 
 
-def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported: dict | None = None) -> str | None:
+def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported: dict | None = None,
+            until: int | None = None) -> str | None:
     """Train and evaluate one planned run: skipped when finished, resumed from its checkpoint
     when interrupted. Returns None, or the error text (one broken scene must not stop the set).
     The executors (local, Ray) both call this, so a run behaves the same wherever it runs.
-    `all_runs` and `reported`: where a count_fraction run finds its reference (resolve_count)."""
+    `all_runs` and `reported`: where a count_fraction run finds its reference (resolve_count).
+    `until`: train to that step, checkpoint and stop (the reports mark the run as stopped)."""
     if run.finished:
         log.info("%s/%s: finished, skipped", run.scene, run.variant)
         return None
@@ -245,7 +249,12 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
         run = resolve_count(run, all_runs or [], reported)
         log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir,
                  run.config.strategy.name, f", max_surfels {run.config.strategy.max_surfels}" if run.count_fraction else "")
-        train_and_evaluate(run.config, run.out_dir, resume=has_checkpoint(run.out_dir))
+        kw = {} if until is None else {"until": int(until)}  # train_and_evaluate's own default otherwise
+        resume = has_checkpoint(run.out_dir)
+        dataset = None if resume else triangulated_data(run)
+        if dataset is not None:
+            kw["dataset"] = dataset
+        train_and_evaluate(run.config, run.out_dir, resume=resume, **kw)
     except KeyboardInterrupt:
         raise
     except Exception as exc:
@@ -256,10 +265,27 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
     return None
 
 
-def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None, reported=None) -> list[tuple[str, str]]:
+def triangulated_data(run: PlannedRun):
+    """The run's dataset with points triangulated from its cameras (sfm/triangulate.py, into
+    RUN/triangulated.ply) when it has fewer SfM points than init_min_points, else as read (training
+    takes it rather than reading it again); None when it cannot be read here: training then reads
+    it and reports the problem itself."""
+    from ghsplat_jax.sfm.triangulate import with_triangulated_points
+    from ghsplat_jax.train.run_dir import load_training_data
+
+    try:
+        dataset = load_training_data(run.config)
+    except (ValueError, OSError) as exc:
+        log.debug("%s/%s: data not read before training (%s)", run.scene, run.variant, exc)
+        return None
+    return with_triangulated_points(dataset, run.config.init_min_points, run.out_dir)
+
+
+def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None, reported=None,
+                 until: int | None = None) -> list[tuple[str, str]]:
     failed = []
     for r in runs:
-        msg = run_one(r, all_runs, reported)
+        msg = run_one(r, all_runs, reported, until) if until is not None else run_one(r, all_runs, reported)
         if msg is not None:
             failed.append((f"{r.scene}/{r.variant}", msg))
             if stop_on_error:
@@ -269,42 +295,57 @@ def _run_locally(runs: list[PlannedRun], stop_on_error: bool, all_runs=None, rep
 
 def run_experiment(exp: Experiment, only: set[str] | None = None, stop_on_error: bool = False,
                    evaluate_only: bool = False, executor: str = "local", ray_options: dict | None = None,
-                   exclude: set[str] = frozenset()) -> dict:
+                   exclude: set[str] = frozenset(), until: int | None = None, retrain: bool = False) -> dict:
     """Train every unfinished run (resuming interrupted ones), then write the reports.
     executor: "local" (one run after another in this process) or "ray" (one Ray task per run,
     see experiments/ray_executor.py; `ray_options` are its keyword arguments).
+    `until`: every run trains to that step, checkpoints and stops; the reports mark it stopped.
+    A run whose folder is gone but whose finished row the experiment's results.json holds is not
+    trained again (hours of work already reported) unless `retrain`.
     Returns {"rows": [...], "failed": [(run, message)], "reports": [paths]}."""
+    from ghsplat_jax.experiments.report import RESULTS_NAME
+
+    if until is not None and until < 1:
+        raise ValueError(f"until must be a step >= 1, got {until}")
+    results = Path(exp.results) / RESULTS_NAME
+    earlier = earlier_rows(results)
     selected = [r for r in exp.runs if r.scene not in exclude
                 and (not only or r.scene in only or f"{r.scene}/{r.variant}" in only)]
     todo = [] if evaluate_only else [r for r in selected if not r.finished]
     for r in selected:
         if r.finished:
             log.info("%s/%s: finished, skipped", r.scene, r.variant)
+    if not retrain:
+        skipped = [r for r in todo if is_reported(earlier.get((r.scene, r.variant))) and not has_checkpoint(r.out_dir)]
+        for r in skipped:
+            row = earlier[(r.scene, r.variant)]
+            log.info("%s/%s: no metrics.json or checkpoint in %s, but %s reports it finished (PSNR %s, %s steps); "
+                     "not trained again (--retrain trains it again)", r.scene, r.variant, r.out_dir, results,
+                     row.get("psnr"), row.get("steps"))
+        todo = [r for r in todo if r not in skipped]
     if executor not in ("local", "ray"):
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
     # Two waves: runs with a count_fraction need their reference's final count.
-    from ghsplat_jax.experiments.report import RESULTS_NAME
-
-    reported = {key: row["num_gaussians"] for key, row in _earlier_rows(Path(exp.results) / RESULTS_NAME).items()
-                if row.get("num_gaussians")}
+    reported = {key: row["num_gaussians"] for key, row in earlier.items() if row.get("num_gaussians")}
     failed = []
     for wave in ([r for r in todo if r.count_fraction is None], [r for r in todo if r.count_fraction is not None]):
         if not wave or (failed and stop_on_error):
             continue
         if executor == "local":
-            failed += _run_locally(wave, stop_on_error, exp.runs, reported)
+            failed += _run_locally(wave, stop_on_error, exp.runs, reported, until)
         else:
             import functools
 
             from ghsplat_jax.experiments.ray_executor import run_on_ray
 
-            failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs, reported=reported),
+            extra = {} if until is None else {"until": int(until)}
+            failed += run_on_ray(wave, functools.partial(run_one, all_runs=exp.runs, reported=reported, **extra),
                                  stop_on_error=stop_on_error, **(ray_options or {}))
     rows, reports = collect(exp)
     return {"rows": rows, "failed": failed, "reports": reports}
 
 
-def _earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
+def earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
     """The rows of the experiment's last report, its results.json at `path`, by (scene, variant)."""
     try:
         rows = json.loads(path.read_text())["rows"] if path.is_file() else []
@@ -312,6 +353,39 @@ def _earlier_rows(path: Path) -> dict[tuple[str, str], dict]:
         log.warning("%s: not a results report (%s); earlier rows are not kept", path, exc)
         return {}
     return {(r.get("scene"), r.get("variant")): r for r in rows if isinstance(r, dict)}
+
+
+def is_reported(row: dict | None) -> bool:
+    """A report row of a finished run (rows written before runs had a status are finished)."""
+    return bool(row) and row.get("status", FINISHED) == FINISHED
+
+
+def stopped_row(run: PlannedRun, experiment: str = "") -> dict | None:
+    """The report row of a run with a checkpoint but no metrics.json (stopped by --stop-at or
+    --until, or interrupted): its step of the planned steps as `status`, and the metrics of
+    its checkpoint's evaluation when `ghsplat eval` made one (RUN/snapshots/step_N/), else none.
+    None without a (readable) checkpoint."""
+    from ghsplat_jax.experiments.report import run_row
+    from ghsplat_jax.train.checkpoint import CheckpointError, read_meta
+    from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, snapshot_dir
+
+    path = run.out_dir / CHECKPOINT_NAME
+    if not path.is_file():
+        return None
+    try:
+        step = int(read_meta(path)["step"])
+    except (CheckpointError, KeyError, TypeError, ValueError) as exc:
+        log.warning("%s/%s: %s is not a readable checkpoint (%s); the run is left out of the report",
+                    run.scene, run.variant, path, exc)
+        return None
+    row = run_row(snapshot_dir(run.out_dir, step), run.scene, run.variant, experiment) or {
+        "experiment": experiment, "scene": run.scene, "variant": run.variant, "split": None, "psnr": None,
+        "l1": None, "ssim": None, "num_gaussians": None}
+    from ghsplat_jax.train.run_dir import PLY_NAME
+
+    status = (f"trained to step {step}, not evaluated" if (run.out_dir / PLY_NAME).is_file()
+              else f"stopped at step {step} of {run.config.steps}")
+    return dict(row, steps=step, run_dir=str(run.out_dir), status=status)
 
 
 def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
@@ -322,23 +396,31 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
     from ghsplat_jax.experiments.report import RESULTS_NAME, run_row, write_results, write_table1
 
     report = Path(exp.results) / RESULTS_NAME
-    rows, earlier = [], _earlier_rows(report)
+    rows, earlier = [], earlier_rows(report)
     for r in exp.runs:
         row = run_row(r.out_dir, r.scene, r.variant, exp.name)
+        if row is not None:
+            row = dict(row, status=FINISHED)
+        else:
+            row = stopped_row(r, exp.name)
+            if row is not None:
+                log.warning("%s/%s: %s (no metrics.json in %s); reported as stopped", r.scene, r.variant,
+                            row["status"], r.out_dir)
         if row is not None:
             contrib = bool(r.config.strategy.contrib_prune_every or r.config.strategy.contrib_prune_final)
             rows.append(dict(row, strategy=r.config.strategy.name, count_fraction=r.count_fraction, contrib_prune=contrib))
         elif (r.scene, r.variant) in earlier:
             log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir, report)
-            rows.append(earlier[(r.scene, r.variant)])
+            rows.append({"status": FINISHED} | earlier[(r.scene, r.variant)])
     if not rows:
         return rows, []
+    finished = [row for row in rows if row.get("status") == FINISHED]  # charts: only final numbers
     name = exp.name if exp.preset == "full" else f"{exp.name} ({exp.preset} preset)"
     title = f"{name}: {exp.description}" if exp.description else name
     reports = write_results(rows, exp.results, title) + write_table1(rows, exp.results, f"Table 1 ({name})")
-    reports += write_charts(rows, exp.results, name) + write_pareto_charts(rows, exp.results, name)
+    reports += write_charts(finished, exp.results, name) + write_pareto_charts(finished, exp.results, name)
     if "compactness" in exp.reports:
         from ghsplat_jax.experiments.compactness import write_compactness
 
-        reports += write_compactness(rows, exp.results, name)
+        reports += write_compactness(finished, exp.results, name)
     return rows, reports
