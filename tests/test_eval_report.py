@@ -124,7 +124,7 @@ def test_experiment_files_parse(tmp_path):
                 assert exp.runs and all(r.config.data for r in exp.runs), (path, preset)
     quick = load_experiment(root / "quick_cpu.toml", output=tmp_path)
     budget = [r for r in quick.runs if r.variant == "budget"]
-    assert budget and all(r.config.strategy == "budget" and r.config.steps == 300 for r in budget)
+    assert budget and all(r.config.strategy.name == "budget" and r.config.steps == 300 for r in budget)
     assert {r.config.data for r in load_experiment(root / "table1.toml").runs} == {
         "llff_fern", "nerf_synthetic_lego", "ngp_fox", "lund_door"}
     bad = tmp_path / "bad.toml"
