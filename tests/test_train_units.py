@@ -396,7 +396,7 @@ def test_pair_buffer_shrinks_after_an_epoch_that_needs_under_half_of_it():
     import types
 
     from ghsplat_jax.raster.render import capacity_bucket
-    from ghsplat_jax.train.trainer import _Session, pair_bucket
+    from ghsplat_jax.train.trainer import TrainingSession, pair_bucket
 
     assert pair_bucket(100_000) == capacity_bucket(125_000) == 131_072
     assert pair_bucket(461_229) == 655_360  # lego's settled need: a third of its 2M buffer
@@ -408,16 +408,16 @@ def test_pair_buffer_shrinks_after_an_epoch_that_needs_under_half_of_it():
 
     s = session(1 << 21)
     for pairs in (300_000, 461_229, 290_000):   # part of an epoch: nothing changes yet
-        _Session._refit_pairs(s, pairs)
+        TrainingSession._refit_pairs(s, pairs)
         assert s.pair_capacity == 1 << 21
-    _Session._refit_pairs(s, 350_000)
+    TrainingSession._refit_pairs(s, 350_000)
     assert s.pair_capacity == 655_360 and s.epoch_steps == 0
     for _ in range(4):                           # needs over half of the buffer: kept
-        _Session._refit_pairs(s, 300_000)
+        TrainingSession._refit_pairs(s, 300_000)
     assert s.pair_capacity == 655_360
     fixed = session(1 << 21, config_capacity=1 << 21)
     for _ in range(4):
-        _Session._refit_pairs(fixed, 1000)
+        TrainingSession._refit_pairs(fixed, 1000)
     assert fixed.pair_capacity == 1 << 21
 
 
@@ -428,7 +428,7 @@ def test_accelerators_grow_buffers_by_doubling_and_keep_them(monkeypatch):
     import types
 
     from ghsplat_jax.train.state import growth_bucket
-    from ghsplat_jax.train.trainer import _Session
+    from ghsplat_jax.train.trainer import TrainingSession
 
     assert [growth_bucket(n) for n in (21_000, 40_000, 327_000)] == [24_576, 40_960, 327_680]
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
@@ -436,7 +436,7 @@ def test_accelerators_grow_buffers_by_doubling_and_keep_them(monkeypatch):
     s = types.SimpleNamespace(config=TrainConfig(), images=np.zeros((2, 1)), pair_capacity=1 << 21,
                               epoch_pairs=0, epoch_steps=0)
     for _ in range(4):
-        _Session._refit_pairs(s, 1000)
+        TrainingSession._refit_pairs(s, 1000)
     assert s.pair_capacity == 1 << 21
 
 

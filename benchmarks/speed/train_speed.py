@@ -100,13 +100,20 @@ def refit_pairs(session) -> None:
 
 def compiled_session(config: TrainConfig, dataset, checkpoint: Path | None, transform=None):
     """A training session at `checkpoint` (or initialisation), `transform(session)` applied, compiled."""
-    return _compiled(trainer._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False), checkpoint, transform)
+    session = trainer.TrainingSession(config, Path(tempfile.mkdtemp()), dataset, resume=False)
+    return _compiled(session, checkpoint, transform)
+
+
+def session_class(trainer_module):
+    """The trainer's session class in this tree or in an older revision's (which named it _Session,
+    and its restore _restore): the benchmark compares revisions."""
+    return getattr(trainer_module, "TrainingSession", None) or getattr(trainer_module, "_Session")
 
 
 def _compiled(session, checkpoint: Path | None, transform=None):
     """`session` at `checkpoint` (or as it is), `transform(session)` applied, its step compiled."""
     if checkpoint is not None:
-        session._restore(checkpoint)
+        (getattr(session, "restore", None) or getattr(session, "_restore"))(checkpoint)
     if transform is not None:
         transform(session)
     state0 = session.state
@@ -216,7 +223,8 @@ def rev_session(tree: Path, args, checkpoint: Path | None):
         path = save_config(SCENES[args.scene], Path(tempfile.mkdtemp()) / "config.toml")
     config = dataclasses.replace(rev("train.config").load_config(path), progress=False, checkpoint_every=0)
     dataset = rev("train.run_dir").load_training_data(config)
-    return _compiled(rev("train.trainer")._Session(config, Path(tempfile.mkdtemp()), dataset, resume=False), checkpoint)
+    session = session_class(rev("train.trainer"))(config, Path(tempfile.mkdtemp()), dataset, resume=False)
+    return _compiled(session, checkpoint)
 
 
 @contextlib.contextmanager

@@ -156,7 +156,7 @@ def warn_about_inputs(config: TrainConfig, dataset) -> list[str]:
     return messages
 
 
-class _Session:
+class TrainingSession:
     """Mutable loop state of one run (host side)."""
 
     def __init__(self, config: TrainConfig, out_dir: Path, dataset, resume: bool, render_fn=None):
@@ -195,7 +195,7 @@ class _Session:
         self.epoch_pairs, self.epoch_steps = 0, 0  # the most pairs a view needed, over steps since the last refit
         path = out_dir / CHECKPOINT_NAME
         if resume and path.exists():
-            self._restore(path)
+            self.restore(path)
         else:
             if resume:
                 log.warning("%s: no checkpoint to resume from; starting a new run", path)
@@ -227,7 +227,7 @@ class _Session:
         out = render(render_params(s.params, s.active, cam.world_to_cam), cam, rcfg)
         return pair_bucket(2 * int(out.stats.num_pairs))
 
-    def _restore(self, path: Path):
+    def restore(self, path: Path):
         self.state, meta = load_run_checkpoint(path, self.optimizers)
         self.pair_capacity = int(meta["pair_capacity"])
         self.rollbacks = int(meta.get("rollbacks", 0))
@@ -452,7 +452,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     dataset = dataset if dataset is not None else load_training_data(config)
-    session = _Session(config, out, dataset, resume, render_fn)
+    session = TrainingSession(config, out, dataset, resume, render_fn)
     save_config(config, out / CONFIG_NAME)
     start = int(session.state.step)
     t0 = time.perf_counter()
