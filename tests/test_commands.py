@@ -139,8 +139,8 @@ def test_bench_outside_a_checkout_says_so(monkeypatch, tmp_path, capsys):
 @pytest.mark.slow
 def test_quick_demo_writes_every_stage(tmp_path):
     from ghsplat_jax.scene.tags import load_tags
-    from ghsplat_jax.transport.recorder import read_bag
     from ghsplat_jax.train import run_dir
+    from ghsplat_jax.transport.recorder import read_bag
 
     out = tmp_path / "demo"
     proc = ghsplat("demo", "--quick", "--out", out)

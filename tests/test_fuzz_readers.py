@@ -250,7 +250,7 @@ def test_colmap_reader_under_fuzz(tmp_path, kind):
 
 def _transforms() -> str:
     frames = []
-    for i, (q, t) in enumerate(_POSES):
+    for i, (_q, t) in enumerate(_POSES):
         c2w = np.eye(4)
         c2w[:3, 3] = t
         frames.append({"file_path": f"images/img{i}", "transform_matrix": c2w.tolist(), "fl_x": 20.0 + i})
@@ -445,9 +445,9 @@ def test_experiment_reader_under_fuzz(tmp_path):
 # ------------------------------------------------------------------------------ DDS messages
 
 def test_dds_messages_under_fuzz():
-    from ghsplat_jax.transport import dds_types as D
     from ghsplat_jax.sim import messages
     from ghsplat_jax.sim.camera_sensor import CameraModel
+    from ghsplat_jax.transport import dds_types as D
     from ghsplat_jax.transport.dds_node import camera_from_request, pose_from_sample
 
     T = np.eye(4)

@@ -7,14 +7,15 @@ surfel rendered alone by the reference renderer)."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from raster_scenes import camera, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import binning
 from ghsplat_jax.raster.project import project
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, random_scene
 
 OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 

@@ -5,11 +5,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, psnr, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, psnr, random_scene
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 

@@ -4,10 +4,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
-from raster_scenes import camera, random_scene
 
 
 def _finite(tree):
@@ -109,7 +109,7 @@ def test_eager_render_grows_capacity_and_recompiles_only_per_bucket():
 
 
 def test_one_capacity_for_many_views_renders_them_all_with_one_compile():
-    from ghsplat_jax.raster.render import rasterize_jit, capacity_for_views
+    from ghsplat_jax.raster.render import capacity_for_views, rasterize_jit
 
     s = random_scene(200, scale=(0.1, 0.9), seed=4)
     cams = [camera(96, 72, eye=(x, -3.5 + abs(x), 1.0)) for x in (-1.5, -0.5, 0.0, 0.7, 1.6)]

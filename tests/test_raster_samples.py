@@ -9,12 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, psnr, random_scene
 
 import ghsplat_jax as gs
-from ghsplat_jax.raster.samples import pixel_samples, stack
-
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, psnr, random_scene
+from ghsplat_jax.raster.samples import pixel_samples, stack
 
 CFG = gs.RasterConfig(tile_size=8, median=True, distortion=True)
 

@@ -10,9 +10,9 @@ pytest.importorskip("viser")
 
 from ghsplat_jax.scene import surfaces
 from ghsplat_jax.sim import robot
-from ghsplat_jax.transport import viewer
 from ghsplat_jax.sim.camera_sensor import CameraFrame, CameraModel
 from ghsplat_jax.sim.scene_io import SimScene
+from ghsplat_jax.transport import viewer
 
 
 def test_viewer_serves_and_updates():

@@ -13,14 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, random_scene
 
-from ghsplat_jax.train import optim, strategies as strat, trainer
-from ghsplat_jax.train.strategies import mcmc as strat_mcmc
+from ghsplat_jax.train import optim, trainer
+from ghsplat_jax.train import strategies as strat
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.state import new_state, pad_params
+from ghsplat_jax.train.strategies import mcmc as strat_mcmc
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 from ghsplat_jax.train.trainer import train
-from raster_scenes import camera, random_scene
 
 CONFIG = TrainConfig(steps=20, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
                      sh_increase_every=10, densify_from=2, densify_every=4, densify_until=18,

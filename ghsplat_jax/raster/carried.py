@@ -47,8 +47,17 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.raster.binning import chunk_layout, cumsum, tile_corner
-from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Z, Static, feature_columns,
-                                          local_pixels, ndc_depth, segmented_exclusive_cumsum)
+from ghsplat_jax.raster.composite import (
+    LOG_T_FLOOR,
+    NUM_FEATURES,
+    T_MIN,
+    Static,
+    Z,
+    feature_columns,
+    local_pixels,
+    ndc_depth,
+    segmented_exclusive_cumsum,
+)
 from ghsplat_jax.raster.project import Projected
 
 # Columns of the per-surfel table (gathered per pair): homography about the centre, det(M),
