@@ -19,12 +19,12 @@ class Surfels:
     sh_dc (N,3) and sh_rest (N,K,3) with K = (degree+1)^2 - 1 (3DGS real-SH basis).
     """
 
-    means: jax.Array
-    quats: jax.Array
-    log_scales: jax.Array
-    opacity_logits: jax.Array
-    sh_dc: jax.Array
-    sh_rest: jax.Array
+    means: jax.Array | np.ndarray
+    quats: jax.Array | np.ndarray
+    log_scales: jax.Array | np.ndarray
+    opacity_logits: jax.Array | np.ndarray
+    sh_dc: jax.Array | np.ndarray
+    sh_rest: jax.Array | np.ndarray
 
     @property
     def num(self) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -69,7 +70,7 @@ def _header_line(path: Path, number: int, words: list[str], state: dict) -> None
 def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, str]], int]:
     if fh.readline(16).strip() != b"ply":
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
-    state = {"format": None, "count": None, "props": [], "in_vertex": False}
+    state: dict[str, Any] = {"format": None, "count": None, "props": [], "in_vertex": False}
     for number in range(2, _MAX_HEADER_LINES):
         line = fh.readline(4096)
         if not line:
@@ -145,7 +146,7 @@ def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     """
     path = Path(path)
     v = read_vertices(path)
-    names = v.dtype.names
+    names = v.dtype.names or ()  # a structured array: never None
     missing = [n for n in _REQUIRED if n not in names]
     if missing:
         raise PlyError(f"{path}: not a Gaussian PLY, missing properties {missing}")
@@ -204,7 +205,7 @@ def surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.nda
 
 
 def is_3dgs_file(path: str | os.PathLike) -> bool:
-    return "scale_2" in read_vertices(path).dtype.names
+    return "scale_2" in (read_vertices(path).dtype.names or ())
 
 
 def surfels_to_vertices(s: Surfels, viewer_compatible: bool = False) -> np.ndarray:
@@ -242,7 +243,7 @@ def save_ply(s: Surfels, path: str | os.PathLike, viewer_compatible: bool = Fals
     v = surfels_to_vertices(s, viewer_compatible)
     header = "ply\nformat binary_little_endian 1.0\n"
     header += f"element vertex {len(v)}\n"
-    header += "".join(f"property float {name}\n" for name in v.dtype.names)
+    header += "".join(f"property float {name}\n" for name in v.dtype.names or ())
     header += "end_header\n"
     with atomic_write(path) as fh:
         fh.write(header.encode("ascii"))

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -180,7 +180,7 @@ def split_chunks(first, used, parts: int):
     return jnp.concatenate([jnp.zeros(1, jnp.int32), starts, used[None]])
 
 
-def _batches(lo, hi, batch: int):
+def _batches(lo, hi, batch: int) -> tuple[Any, Any]:
     """The loop range over batches that hold chunks [lo, hi)."""
     return lo // batch, (hi + batch - 1) // batch
 
