@@ -176,3 +176,15 @@ def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys
     assert "1 of 3 test files passed" in out
     assert "test_crash.py: killed by SIGSEGV" in out and "test_bad.py: failed (pytest exit 1)" in out
     assert run(files[-1:], ["-q"], tmp_path) == 0  # test_ok.py alone
+
+
+def test_fast_suite_skips_files_that_are_slow_throughout(tmp_path, capsys):
+    """`make test` (run_suite.py --fast) starts only files with a test that is not marked slow."""
+    from run_suite import all_slow, select
+
+    (tmp_path / "test_some.py").write_text("import pytest\n\n@pytest.mark.slow\ndef test_a():\n    pass\n")
+    (tmp_path / "test_all.py").write_text("import pytest\n\npytestmark = pytest.mark.slow  # long\n")
+    (tmp_path / "test_list.py").write_text("import pytest\n\npytestmark = [pytest.mark.slow]\n")
+    files = sorted(tmp_path.glob("test_*.py"))
+    assert [all_slow(f) for f in files] == [True, True, False]
+    assert select(files, fast=True) == [tmp_path / "test_some.py"] and select(files, fast=False) == files

@@ -28,7 +28,14 @@ _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", 
 
 
 class PlyError(DatasetError):
-    """A PLY file that cannot be read as Gaussians; the message names the file."""
+    """A PLY file that cannot be read as Gaussians; the message names the file.
+
+    Args:
+        *args: the message, as for any exception (the file's path, then what is wrong).
+
+    Returns:
+        The exception, raised by `load_ply` (a DatasetError, so a ValueError too).
+    """
 
 
 _MAX_HEADER_LINES = 10_000  # a real Gaussian PLY header has well under a hundred lines
@@ -143,6 +150,17 @@ def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     3DGS files have three scales: the largest two are kept and a warning says so. NaN or Inf
     values are an error (they must never reach a render) unless `finite=False`, for tools
     that drop such surfels themselves (`ghsplat export`).
+
+    Args:
+        path: the PLY file (binary little- or big-endian, or ASCII).
+        finite: refuse NaN or Inf values (True) or pass them through (False).
+
+    Returns:
+        Surfels with NumPy float32 fields; the SH degree follows the file's f_rest count.
+
+    Raises:
+        PlyError: the file is not a readable Gaussian PLY, or (with `finite`) holds
+            non-finite values.
     """
     path = Path(path)
     v = read_vertices(path)
@@ -233,7 +251,19 @@ def surfels_to_vertices(s: Surfels, viewer_compatible: bool = False) -> np.ndarr
 
 
 def save_ply(s: Surfels, path: str | os.PathLike, viewer_compatible: bool = False) -> Path:
-    """Write Surfels as a binary 2DGS PLY (atomically); `viewer_compatible` adds scale_2."""
+    """Write Surfels as a binary 2DGS PLY (atomically); `viewer_compatible` adds scale_2.
+
+    Args:
+        s: the surfels to write (host or device arrays).
+        path: the file to write; it is replaced atomically.
+        viewer_compatible: add a thin third scale (scale_2) so that 3DGS viewers load the file.
+
+    Returns:
+        The path written, as a Path.
+
+    Raises:
+        ValueError: when a field holds NaN or Inf.
+    """
     path = Path(path)
     s = s.to_numpy()
     bad = [f for f in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
