@@ -135,7 +135,7 @@ def test_bench_outside_a_checkout_says_so(monkeypatch, tmp_path, capsys):
 
 
 # `ghsplat demo --quick` takes about 150 s on 2 CPU cores: the suite's slowest test, and the only
-# one that runs every stage of the pipeline end to end, so it runs by default.
+# one that runs every stage of the pipeline end to end, so `make test-all` (CI) runs it.
 @pytest.mark.slow
 def test_quick_demo_writes_every_stage(tmp_path):
     from ghsplat_jax.scene.tags import load_tags
