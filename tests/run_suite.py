@@ -11,7 +11,8 @@ compiles a file repeats cheap.
 
 Two suites: `--fast` (`make test`) deselects tests marked `slow` (`-m "not slow"`) and does not
 start the files whose every test is slow (a module-level `pytestmark = pytest.mark.slow`);
-without it (`make test-all`) every test runs. `--list` prints what would run without running it
+without it (`make test-all`) every test runs. The fast suite also sets GHSPLAT_SUITE=fast for
+the files that scale a search down there (the reader fuzzing: fewer examples). `--list` prints what would run without running it
 (add `--collect-only -q` instead to see each file's tests).
 
     python tests/run_suite.py [--fast] [--list] [pytest args...]   # other args go to every file's pytest
@@ -19,6 +20,7 @@ without it (`make test-all`) every test runs. `--list` prints what would run wit
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -49,14 +51,16 @@ def select(files: list[Path], fast: bool) -> list[Path]:
     return [path for path in files if not (fast and all_slow(path))]
 
 
-def run(files: list[Path], args: list[str], root: Path) -> int:
-    """Each file's tests in their own pytest process run in `root`; 0 when every file passed."""
+def run(files: list[Path], args: list[str], root: Path, env: dict[str, str] | None = None) -> int:
+    """Each file's tests in their own pytest process run in `root` (with `env` added to the
+    environment); 0 when every file passed."""
     results, seconds, start = {}, {}, time.monotonic()
+    environ = {**os.environ, **(env or {})}
     for path in files:
         name = path.relative_to(root)
         print(f"== {name}", flush=True)
         began = time.monotonic()
-        results[name] = subprocess.call([sys.executable, "-m", "pytest", str(name), *args], cwd=root)
+        results[name] = subprocess.call([sys.executable, "-m", "pytest", str(name), *args], cwd=root, env=environ)
         seconds[name] = time.monotonic() - began
     bad = {name: outcome(code) for name, code in results.items() if outcome(code) != "passed"}
     print(f"\n== {len(files) - len(bad)} of {len(files)} test files passed in {time.monotonic() - start:.0f} s")
@@ -80,7 +84,7 @@ def main(argv: list[str]) -> int:
         for path in everything:
             print(f"   {path.relative_to(TESTS.parent)}{'' if path in files else '   (all slow: not run)'}")
         return 0
-    return run(files, args, TESTS.parent)
+    return run(files, args, TESTS.parent, {"GHSPLAT_SUITE": "fast"} if fast else None)
 
 
 if __name__ == "__main__":
