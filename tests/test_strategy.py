@@ -198,6 +198,7 @@ def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
             assert counts[-1] == 150 and int(res.strategy_state["added"]) == 150 - res.initial_count
 
 
+@pytest.mark.slow  # three MCMC runs; test_train_loop.py checks resume of the default strategy in make test
 def test_resume_restores_the_strategy_state(tmp_path):
     cfg = CONFIG.replace(strategy=dict(name="mcmc", max_surfels=250, grow_rate=0.2, contrib_prune_every=8,
                                        contrib_prune_threshold=0.05))

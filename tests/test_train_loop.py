@@ -297,7 +297,8 @@ def test_compiled_step_follows_every_setting_of_its_config():
     assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
 
 
-@pytest.mark.parametrize("extra", [dict(), dict(strategy={"name": "mcmc", "max_surfels": 100})], ids=["default", "mcmc"])
+@pytest.mark.parametrize("extra", [dict(), pytest.param(dict(strategy={"name": "mcmc", "max_surfels": 100}),
+                                                        marks=pytest.mark.slow)], ids=["default", "mcmc"])
 def test_parted_step_matches_the_one_program_step(extra):
     """The step whose compositor runs in two threads (`parted_step`) computes what the single
     program does: the same loss and metrics, and updates equal to float32 rounding (the parts'
@@ -413,6 +414,7 @@ def test_every_matrix_product_of_the_step_asks_for_float32():
     assert all(p == highest for p in precisions), precisions
 
 
+@pytest.mark.slow  # two runs with evaluations slowed on purpose (test_resume_reproduces_state covers resume)
 def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path, monkeypatch):
     """With test_curve_every, training writes the test views' metrics every so many steps to
     test_curve.jsonl, continued across a resume without repeated or missing points; its last
