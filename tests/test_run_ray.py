@@ -27,6 +27,7 @@ def local_ray():
     ray.shutdown()
 
 
+@pytest.mark.slow  # a local Ray cluster running training tasks
 def test_quick_preset_runs_as_ray_tasks_skipping_and_resuming(tmp_path, local_ray):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
 
