@@ -103,6 +103,7 @@ def finished_run(scene, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # a subprocess compiling three raster variants: the file's longest test after the demo
 def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
     """raster_ablation imports speed/raster_speed and record.py: `ghsplat bench` must put benchmarks/ on the path."""
     proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
