@@ -1,4 +1,8 @@
 # Two commands on a fresh machine: `make demo` and `make test`.
+#   make test      lint, type check, then the fast suite (tests not marked `slow`): ~10 min on 2 cores
+#   make test-all  lint, type check, then every test (notebooks, soak, crash and resume, full SfM,
+#                  fuzz at depth, docs examples): what CI runs (.ci/run)
+#   make lint      ruff on the checkout and mypy on the public API (pyproject.toml configures both)
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -7,7 +11,7 @@ export JAX_PLATFORMS ?= cpu
 # Persistent XLA compilation cache: repeated test runs skip most compiles.
 export JAX_COMPILATION_CACHE_DIR ?= $(HOME)/.cache/ghsplat-jax/xla
 
-.PHONY: install test demo bench clean
+.PHONY: install lint test test-all demo bench clean help
 
 install: $(STAMP)
 
@@ -22,8 +26,19 @@ $(STAMP): pyproject.toml
 	  echo "note: no chromium-headless-shell; the viewer screenshot test will be skipped"
 	touch $(STAMP)
 
+help:
+	@sed -n '2,5s/^# //p' Makefile
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
 # One pytest process per test file (tests/run_suite.py says why), then one summary.
-test: install
+# `--fast` deselects the tests marked `slow` and skips files that are slow throughout.
+test: lint
+	$(BIN)/python tests/run_suite.py --fast
+
+test-all: lint
 	$(BIN)/python tests/run_suite.py
 
 demo: install
@@ -33,4 +48,4 @@ bench: install
 	$(BIN)/python benchmarks/speed/raster_speed.py
 
 clean:
-	rm -rf $(VENV) .cache build *.egg-info
+	rm -rf $(VENV) .cache .ruff_cache .mypy_cache build *.egg-info

@@ -6,8 +6,8 @@
 """
 
 from ghsplat_jax.core import Camera, Surfels, concatenate, intrinsics, look_at, make_surfels
-from ghsplat_jax.raster import RasterConfig, RasterOverflowError, RenderOutput, render
 from ghsplat_jax.data.ply import PlyError, load_ply, save_ply
+from ghsplat_jax.raster import RasterConfig, RasterOverflowError, RenderOutput, render
 
 __all__ = [
     "Camera", "PlyError", "RasterConfig", "RasterOverflowError", "RenderOutput", "Surfels",

@@ -103,6 +103,7 @@ def finished_run(scene, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # a subprocess compiling three raster variants: the file's longest test after the demo
 def test_bench_runs_the_raster_ablation_from_the_checkout(finished_run, tmp_path):
     """raster_ablation imports speed/raster_speed and record.py: `ghsplat bench` must put benchmarks/ on the path."""
     proc = ghsplat("bench", "raster_ablation", "--run", finished_run, "--views", "1", "--repeats", "1",
@@ -135,12 +136,12 @@ def test_bench_outside_a_checkout_says_so(monkeypatch, tmp_path, capsys):
 
 
 # `ghsplat demo --quick` takes about 150 s on 2 CPU cores: the suite's slowest test, and the only
-# one that runs every stage of the pipeline end to end, so it runs by default.
+# one that runs every stage of the pipeline end to end, so `make test-all` (CI) runs it.
 @pytest.mark.slow
 def test_quick_demo_writes_every_stage(tmp_path):
     from ghsplat_jax.scene.tags import load_tags
-    from ghsplat_jax.transport.recorder import read_bag
     from ghsplat_jax.train import run_dir
+    from ghsplat_jax.transport.recorder import read_bag
 
     out = tmp_path / "demo"
     proc = ghsplat("demo", "--quick", "--out", out)
@@ -176,3 +177,15 @@ def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys
     assert "1 of 3 test files passed" in out
     assert "test_crash.py: killed by SIGSEGV" in out and "test_bad.py: failed (pytest exit 1)" in out
     assert run(files[-1:], ["-q"], tmp_path) == 0  # test_ok.py alone
+
+
+def test_fast_suite_skips_files_that_are_slow_throughout(tmp_path, capsys):
+    """`make test` (run_suite.py --fast) starts only files with a test that is not marked slow."""
+    from run_suite import all_slow, select
+
+    (tmp_path / "test_some.py").write_text("import pytest\n\n@pytest.mark.slow\ndef test_a():\n    pass\n")
+    (tmp_path / "test_all.py").write_text("import pytest\n\npytestmark = pytest.mark.slow  # long\n")
+    (tmp_path / "test_list.py").write_text("import pytest\n\npytestmark = [pytest.mark.slow]\n")
+    files = sorted(tmp_path.glob("test_*.py"))
+    assert [all_slow(f) for f in files] == [True, True, False]
+    assert select(files, fast=True) == [tmp_path / "test_some.py"] and select(files, fast=False) == files

@@ -5,7 +5,10 @@ kills it 20 times)."""
 
 from __future__ import annotations
 
+import pytest
 from benchmark_scripts import load_benchmark
+
+pytestmark = pytest.mark.slow  # a real `ghsplat train` killed and resumed in subprocesses: `make test-all`
 
 
 def _benchmark():

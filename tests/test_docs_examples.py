@@ -39,6 +39,8 @@ def test_there_are_runnable_examples():
     assert any(name.startswith("README.md") for name, _ in BLOCKS), "README.md's Python example is not marked"
 
 
+# Each example compiles its own renders: minutes in all, so `make test-all` runs them.
+@pytest.mark.slow
 @pytest.mark.parametrize("code", [code for _, code in BLOCKS], ids=[name for name, _ in BLOCKS])
 def test_example_runs(code, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

@@ -7,12 +7,17 @@ import json
 
 import pytest
 
-from ghsplat_jax.experiments.charts import pareto_front, scatter_figure, scatter_series, write_charts, write_pareto_charts
 from ghsplat_jax.eval.metrics import image_metrics, summarize
+from ghsplat_jax.experiments.charts import (
+    pareto_front,
+    scatter_figure,
+    scatter_series,
+    write_charts,
+    write_pareto_charts,
+)
 from ghsplat_jax.experiments.report import collect_runs, table1_markdown, write_results, write_table1
 from ghsplat_jax.experiments.runner import load_experiment
 from ghsplat_jax.train.config import ConfigError
-
 
 TWO_SCENES = '''[[scenes]]
 name = "a"

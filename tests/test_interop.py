@@ -74,9 +74,9 @@ def _3dgs_names(k: int) -> list[str]:
 @pytest.mark.parametrize("degree", [0, 3])
 def test_viewer_ply_loads_in_plyfile_with_3dgs_order(tmp_path, degree):
     from plyfile import PlyData
+    from raster_scenes import random_scene
 
     from ghsplat_jax.data.ply import save_ply
-    from raster_scenes import random_scene
 
     s = random_scene(37, degree=degree)
     path = save_ply(s, tmp_path / "viewer.ply", viewer_compatible=True)

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
+from raster_scenes import random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.data.ply import is_3dgs_file, read_vertices
-from raster_scenes import random_scene
 
 
 def test_round_trip_is_bit_exact(tmp_path):

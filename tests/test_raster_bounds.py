@@ -7,14 +7,15 @@ surfel rendered alone by the reference renderer)."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from raster_scenes import camera, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import binning
 from ghsplat_jax.raster.project import project
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, random_scene
 
 OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 
@@ -29,7 +30,9 @@ def mixed_scene(n=150, seed=0):
     return gs.Surfels(s.means, s.quats, jnp.asarray(log_scales), s.opacity_logits, s.sh_dc, s.sh_rest)
 
 
-@pytest.mark.parametrize("tile, lowpass", [(8, True), (16, True), (32, False), (8, False)])
+# Two compiled renders a case: `make test` runs the smallest and the largest tile, `make test-all` all four.
+@pytest.mark.parametrize("tile, lowpass", [(8, True), pytest.param(16, True, marks=pytest.mark.slow), (32, False),
+                                           pytest.param(8, False, marks=pytest.mark.slow)])
 def test_tight_bounds_render_the_same_image_with_fewer_pairs(tile, lowpass):
     s, cam = mixed_scene(seed=tile), camera(80, 56)
     tight = gs.render(s, cam, gs.RasterConfig(tile_size=tile, lowpass_filter=lowpass))

@@ -5,23 +5,28 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, psnr, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, psnr, random_scene
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+# Each case compiles its own programs (10-100 s on 2 busy cores): `make test` keeps one case of
+# each test, the default carried compositor (and the log-space one against the reference), and
+# `make test-all` runs the other settings.
+slow = pytest.mark.slow
 
 
 @pytest.mark.parametrize("cfg", [
     gs.RasterConfig(),
-    gs.RasterConfig(tile_size=8, chunk_size=8, background=(0.2, 0.5, 1.0)),
-    gs.RasterConfig(tile_size=32, lowpass_filter=False, batch_chunks=4),
-    gs.RasterConfig(tile_size=8, batch_chunks=3),
+    pytest.param(gs.RasterConfig(tile_size=8, chunk_size=8, background=(0.2, 0.5, 1.0)), marks=slow),
+    pytest.param(gs.RasterConfig(tile_size=32, lowpass_filter=False, batch_chunks=4), marks=slow),
+    pytest.param(gs.RasterConfig(tile_size=8, batch_chunks=3), marks=slow),
     gs.RasterConfig(compositor="logspace"),
-    gs.RasterConfig(compositor="logspace", tile_size=32, lowpass_filter=False, batch_chunks=4),
-    gs.RasterConfig(backend="dense"),
+    pytest.param(gs.RasterConfig(compositor="logspace", tile_size=32, lowpass_filter=False, batch_chunks=4),
+                 marks=slow),
+    pytest.param(gs.RasterConfig(backend="dense"), marks=slow),
 ], ids=["default", "tile8-bg", "tile32-nofilter", "tile8-odd-batch", "logspace", "logspace-tile32-nofilter",
         "dense-baseline"])
 def test_low_opacity_matches_reference(cfg):
@@ -34,7 +39,7 @@ def test_low_opacity_matches_reference(cfg):
         np.testing.assert_allclose(np.asarray(getattr(out, key)), ref[key], atol=1e-3, err_msg=key)
 
 
-@pytest.mark.parametrize("compositor", ["carried", "logspace"])
+@pytest.mark.parametrize("compositor", ["carried", pytest.param("logspace", marks=slow)])
 def test_opaque_scene_close_to_reference(compositor):
     s, cam = random_scene(400, seed=3, opacity=(0.6, 0.99), scale=(0.05, 0.3)), camera(64, 48)
     # 16-px tiles as in 2DGS: tiles cut the tails of opaque surfels past their 3-sigma ellipse
@@ -68,7 +73,8 @@ def test_single_tile_with_thousands_of_surfels_is_exact():
 VARIANTS = [("carried", "custom_vjp"), ("logspace", "custom_vjp"), ("logspace", "autodiff")]
 
 
-@pytest.mark.parametrize("compositor, backward", VARIANTS, ids=["-".join(v) for v in VARIANTS])
+@pytest.mark.parametrize("compositor, backward", [pytest.param(*v, marks=() if i == 0 else slow)
+                                                  for i, v in enumerate(VARIANTS)], ids=["-".join(v) for v in VARIANTS])
 def test_gradients_match_finite_differences(compositor, backward):
     s, cam = random_scene(40, seed=1, opacity=(0.3, 0.9), degree=2), camera(32, 24)
     r = np.random.default_rng(5)
@@ -104,7 +110,7 @@ def test_gradients_match_finite_differences(compositor, backward):
             assert abs(g[i] - fd) <= 3e-2 * max(abs(fd), 1e-3), (field, i, g[i], fd)
 
 
-@pytest.mark.parametrize("distortion", [False, True])
+@pytest.mark.parametrize("distortion", [pytest.param(False, marks=slow), True])
 def test_skipped_outputs_change_nothing_else(distortion):
     """depth_normal=False (what training renders until its normal term starts) leaves depth and
     normal at zero and everything else bit for bit: the image, the distortion and the gradients
@@ -138,7 +144,7 @@ def assert_same_math(a, b, what):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max(), err_msg=what)
 
 
-@pytest.mark.parametrize("median", [True, False])
+@pytest.mark.parametrize("median", [True, pytest.param(False, marks=slow)])  # True checks the median's too
 def test_backward_skips_exactly(monkeypatch, median):
     """The carried backward walks only the pairs that can change an output (alpha > 0 at a pixel
     still open before them), cut again into chunks ("pairs"), or the chunks holding alpha > 0 at a

@@ -4,10 +4,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, random_scene
 
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
-from raster_scenes import camera, random_scene
 
 
 def _finite(tree):
@@ -48,8 +48,10 @@ def bad_scene():
     return s, cam
 
 
-@pytest.mark.parametrize("compositor, backward", [("carried", "custom_vjp"), ("logspace", "custom_vjp"),
-                                                  ("logspace", "autodiff")])
+# `make test` runs the default compositor; the log-space ones (a compile each) run in `make test-all`.
+@pytest.mark.parametrize("compositor, backward", [("carried", "custom_vjp"),
+                                                  pytest.param("logspace", "custom_vjp", marks=pytest.mark.slow),
+                                                  pytest.param("logspace", "autodiff", marks=pytest.mark.slow)])
 def test_bad_geometry_never_produces_nan(compositor, backward):
     s, cam = bad_scene()
     cfg = gs.RasterConfig(compositor=compositor, backward=backward)
@@ -108,8 +110,9 @@ def test_eager_render_grows_capacity_and_recompiles_only_per_bucket():
     assert rasterize_jit._cache_size() == compiled + 1
 
 
+@pytest.mark.slow  # five views at several capacities: the file's longest test (the one above checks buckets)
 def test_one_capacity_for_many_views_renders_them_all_with_one_compile():
-    from ghsplat_jax.raster.render import rasterize_jit, capacity_for_views
+    from ghsplat_jax.raster.render import capacity_for_views, rasterize_jit
 
     s = random_scene(200, scale=(0.1, 0.9), seed=4)
     cams = [camera(96, 72, eye=(x, -3.5 + abs(x), 1.0)) for x in (-1.5, -0.5, 0.0, 0.7, 1.6)]

@@ -9,12 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, psnr, random_scene
 
 import ghsplat_jax as gs
-from ghsplat_jax.raster.samples import pixel_samples, stack
-
 from ghsplat_jax.raster.reference import render_reference
-from raster_scenes import camera, psnr, random_scene
+from ghsplat_jax.raster.samples import pixel_samples, stack
 
 CFG = gs.RasterConfig(tile_size=8, median=True, distortion=True)
 
@@ -57,6 +56,7 @@ def test_sample_gradients_equal_the_image_gradients():
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.slow  # two more compiled renders; the pixel-centre tests above cover the layout
 def test_off_centre_samples_match_a_shifted_image():
     """A sample at (x + 0.3, y + 0.7) is the pixel centre of a camera shifted by that much."""
     s, cam = random_scene(200, seed=4), camera(40, 24)
@@ -72,6 +72,7 @@ def test_off_centre_samples_match_a_shifted_image():
     np.testing.assert_allclose(np.asarray(points.rgb), np.asarray(shifted.rgb).reshape(-1, 3)[flat], atol=1e-5)
 
 
+@pytest.mark.slow  # the reference comparisons themselves run in test_raster_reference.py
 def test_opaque_samples_close_to_reference():
     s, cam = random_scene(400, seed=3, opacity=(0.6, 0.99), scale=(0.05, 0.3)), camera(64, 48)
     xy, flat = _pixel_points(np.random.default_rng(4), 64, 48, 300)

@@ -84,3 +84,12 @@ def test_readme_is_short():
 def test_license_exists():
     text = (ROOT / "LICENSE").read_text(encoding="utf-8")
     assert "Apache License" in text and "Version 2.0" in text
+
+
+def test_make_test_is_the_fast_suite_and_ci_runs_everything():
+    """`make test` runs ruff, mypy and the tests not marked slow; `make test-all` (CI) every test."""
+    make = (ROOT / "Makefile").read_text(encoding="utf-8")
+    assert re.search(r"^lint: .*\n\t\$\(BIN\)/ruff check \.\n\t\$\(BIN\)/mypy$", make, re.MULTILINE)
+    assert re.search(r"^test: lint\n\t\$\(BIN\)/python tests/run_suite.py --fast$", make, re.MULTILINE)
+    assert re.search(r"^test-all: lint\n\t\$\(BIN\)/python tests/run_suite.py$", make, re.MULTILINE)
+    assert re.search(r"^make test-all$", (ROOT / ".ci" / "run").read_text(encoding="utf-8"), re.MULTILINE)

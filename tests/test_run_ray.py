@@ -11,11 +11,11 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
+from test_train_loop import CONFIG
+
 from ghsplat_jax.experiments.runner import load_experiment, run_experiment
 from ghsplat_jax.train.run_dir import STATS_NAME, has_checkpoint, read_metrics
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
-
-from test_train_loop import CONFIG
 
 QUICK = Path(__file__).parents[1] / "experiments" / "quick_cpu.toml"
 
@@ -27,6 +27,7 @@ def local_ray():
     ray.shutdown()
 
 
+@pytest.mark.slow  # a local Ray cluster running training tasks
 def test_quick_preset_runs_as_ray_tasks_skipping_and_resuming(tmp_path, local_ray):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
 

@@ -8,8 +8,8 @@ import pytest
 
 import ghsplat_jax as gs
 from ghsplat_jax.cli import main as cli
-from ghsplat_jax.scene import edit, merge, stats
 from ghsplat_jax.data.ply import read_vertices
+from ghsplat_jax.scene import edit, merge, stats
 
 
 def _plane_with_floaters(seed=0):

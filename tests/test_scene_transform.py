@@ -5,8 +5,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import ghsplat_jax as gs
-from ghsplat_jax.scene import transform
 from ghsplat_jax.core.quaternions import to_rotation_matrix_np
+from ghsplat_jax.scene import transform
 from ghsplat_jax.scene.views import render_stable
 
 SIZE = 128

@@ -48,6 +48,7 @@ def test_umeyama_recovers_a_similarity():
     assert scale == pytest.approx(2.5) and np.allclose(rot, q) and np.allclose(t, [1, -2, 3])
 
 
+@pytest.mark.slow
 @needs(FERN)
 def test_fern_registers_all_and_reports_partial_runs(tmp_path, capsys):
     """All 20 fern images register; two noise images do not, and the run says so."""
@@ -90,6 +91,7 @@ def test_fern_registers_all_and_reports_partial_runs(tmp_path, capsys):
     assert np.allclose(np.median(points[:, :2], axis=0), 0.0, atol=1e-6)  # origin at the median
 
 
+@pytest.mark.slow
 @needs(LUND)
 def test_lund_door_matches_reference_poses(tmp_path):
     from ghsplat_jax.sfm.pipeline import SfmOptions, run_sfm

@@ -12,12 +12,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # SfM of a whole procedural row: `make test-all`
+
 pycolmap = pytest.importorskip("pycolmap")
 pytest.importorskip("trimesh")
 pytest.importorskip("embreex")
 
 
-@pytest.mark.slow
 def test_procedural_row_is_recovered_and_aligned(tmp_path):
     from ghsplat_jax.sfm.align import AlignOptions, angle_deg, camera_centres
     from ghsplat_jax.sfm.evaluate import compare_models, model_w2c, umeyama

@@ -5,9 +5,9 @@ import pytest
 
 pytest.importorskip("rosbags")
 
+from ghsplat_jax.data.ply import save_ply
 from ghsplat_jax.scene import surfaces
 from ghsplat_jax.scene.merge import merge
-from ghsplat_jax.data.ply import save_ply
 from ghsplat_jax.sim import messages as m
 from ghsplat_jax.transport import recorder
 

@@ -14,8 +14,8 @@ import pytest
 pytest.importorskip("cyclonedds")
 
 from ghsplat_jax.sim import frames
-from ghsplat_jax.transport import dds_node
 from ghsplat_jax.sim.camera_sensor import CameraModel
+from ghsplat_jax.transport import dds_node
 
 TESTS = Path(__file__).parent
 
@@ -74,7 +74,7 @@ def test_register_pose_render_and_bad_input(node):
         bad = cam.info(0.0)
         bad.k[0] = 0.0  # malformed: zero focal length
         bad.header.frame_id = "other_optical"
-        seq = client.send_request(bad)
+        client.send_request(bad)
         rep = client.receive("reply", 10, lambda r: True)
         assert rep.success is False and "bad camera info" in rep.status_message
 

@@ -13,13 +13,13 @@ import pytest
 pytest.importorskip("foxglove")
 websockets_sync = pytest.importorskip("websockets.sync.client")
 
+from test_sim_fakes import box_room_renderer
+
 from ghsplat_jax.sim import beams, simulate
 from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
 from ghsplat_jax.sim.lidar import Lidar
 from ghsplat_jax.sim.robot import Robot
 from ghsplat_jax.sim.trajectory import from_waypoints
-
-from test_sim_fakes import box_room_renderer
 
 # foxglove-sdk >= 0.2x speaks "foxglove.sdk.v1"; older servers "foxglove.websocket.v1" (same frames)
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]

@@ -3,7 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from ghsplat_jax.sim import frames, robot, trajectory as tj
+from ghsplat_jax.sim import frames, robot
+from ghsplat_jax.sim import trajectory as tj
 
 
 def test_optical_frame_is_opencv_in_rep103_body():

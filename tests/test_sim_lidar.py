@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
+from test_sim_fakes import analytic_box_ranges, box_room_renderer
 
 from ghsplat_jax.sim import beams, frames, lidar
-from test_sim_fakes import analytic_box_ranges, box_room_renderer
 
 LO, HI = (-4.0, -3.0, -1.0), (5.0, 6.0, 3.0)
 
@@ -152,7 +152,7 @@ def test_procedural_scene_against_mesh_raycast():
                          render=sc.RenderConfig(texture_size=16))
     scene = synth_scene.generate_scene(cfg)
     try:
-        scene.intersector
+        scene.intersector  # noqa: B018 (a lazy property: building it is the check)
     except Exception as exc:  # embree missing
         pytest.skip(f"no mesh ray caster: {exc}")
     s = surfaces.mesh(scene.mesh, 0.03, surfaces.constant_colour((0.3, 0.6, 0.3)))

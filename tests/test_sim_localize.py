@@ -7,12 +7,12 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from ghsplat_jax.scene import markers, surfaces
-from ghsplat_jax.scene.merge import merge
 from ghsplat_jax.data.ply import save_ply
-from ghsplat_jax.scene.tags import save_tags
 from ghsplat_jax.localize import apriltag as localize
 from ghsplat_jax.localize import report
+from ghsplat_jax.scene import markers, surfaces
+from ghsplat_jax.scene.merge import merge
+from ghsplat_jax.scene.tags import save_tags
 from ghsplat_jax.sim import robot
 
 

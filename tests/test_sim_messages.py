@@ -6,7 +6,8 @@ import pytest
 pytest.importorskip("cyclonedds")
 pytest.importorskip("rosbags")
 
-from ghsplat_jax.sim import frames, messages as m, robot
+from ghsplat_jax.sim import frames, robot
+from ghsplat_jax.sim import messages as m
 from ghsplat_jax.transport import dds_types as D
 from ghsplat_jax.transport import recorder
 

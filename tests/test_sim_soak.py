@@ -13,6 +13,8 @@ pytest.importorskip("psutil")
 from benchmark_scripts import load_benchmark
 from test_sim_fakes import box_room_renderer
 
+pytestmark = pytest.mark.slow  # 1,500 simulated frames: `make test-all`
+
 
 def _benchmark():
     return load_benchmark("sim_soak")

@@ -10,9 +10,9 @@ pytest.importorskip("viser")
 
 from ghsplat_jax.scene import surfaces
 from ghsplat_jax.sim import robot
-from ghsplat_jax.transport import viewer
 from ghsplat_jax.sim.camera_sensor import CameraFrame, CameraModel
 from ghsplat_jax.sim.scene_io import SimScene
+from ghsplat_jax.transport import viewer
 
 
 def test_viewer_serves_and_updates():
@@ -48,6 +48,7 @@ def _chromium():
                  if shutil.which(n)), None)
 
 
+@pytest.mark.slow  # starts a headless browser
 @pytest.mark.skipif(_chromium() is None, reason="no headless Chromium (make install adds chromium-headless-shell)")
 def test_viewer_screenshot_in_headless_chromium(tmp_path):
     """A real browser renders the page: the surfel box and the LiDAR points are on screen."""

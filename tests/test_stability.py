@@ -102,6 +102,7 @@ def test_a_silent_sfm_failure_is_a_fail_marked_not_detected():
     assert stability._sfm_row(case, good, "test")["result"] == "pass"
 
 
+@pytest.mark.slow  # a recorded SfM row and render cases through the whole study: the file's longest test
 def test_study_runs_cases_and_writes_one_table(tmp_path):
     """Recorded SfM rows and two render cases through run_study: reports written, a broken case is a
     fail row naming the error, never a pass."""
@@ -140,6 +141,7 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
     assert len(json.loads((tmp_path / "results" / "stability.json").read_text())["rows"]) == 3
 
 
+@pytest.mark.slow  # test_raster_robustness.py checks culling and test_raster_reference.py exactness in make test
 def test_degenerate_scene_matches_the_reference_and_counts_the_culled():
     # 64x48 shows the surfel whose 3-sigma ellipse crosses the camera plane on the horizon rows:
     # there the filter centre is the projected mean in both renderers

@@ -13,14 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from raster_scenes import camera, random_scene
 
-from ghsplat_jax.train import optim, strategies as strat, trainer
-from ghsplat_jax.train.strategies import mcmc as strat_mcmc
+from ghsplat_jax.train import optim, trainer
+from ghsplat_jax.train import strategies as strat
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.state import new_state, pad_params
+from ghsplat_jax.train.strategies import mcmc as strat_mcmc
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 from ghsplat_jax.train.trainer import train
-from raster_scenes import camera, random_scene
 
 CONFIG = TrainConfig(steps=20, lr_sh_dc=0.02, lr_means_init=1e-3, lr_means_final=1e-4, sh_degree=1,
                      sh_increase_every=10, densify_from=2, densify_every=4, densify_until=18,
@@ -197,6 +198,7 @@ def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
             assert counts[-1] == 150 and int(res.strategy_state["added"]) == 150 - res.initial_count
 
 
+@pytest.mark.slow  # three MCMC runs; test_train_loop.py checks resume of the default strategy in make test
 def test_resume_restores_the_strategy_state(tmp_path):
     cfg = CONFIG.replace(strategy=dict(name="mcmc", max_surfels=250, grow_rate=0.2, contrib_prune_every=8,
                                        contrib_prune_threshold=0.05))

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from ghsplat_jax.core.camera import Camera, intrinsics, look_at
-from ghsplat_jax.synth import capture, config, render, scene as synth_scene
+from ghsplat_jax.synth import capture, config, render
+from ghsplat_jax.synth import scene as synth_scene
 
 
 def small_config(**layout) -> config.SceneConfig:

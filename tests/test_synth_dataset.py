@@ -11,7 +11,8 @@ import pytest
 from ghsplat_jax.core.quaternions import to_rotation_matrix
 from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.scene.tags import load_tags
-from ghsplat_jax.synth import capture, config, dataset, render, scene as synth_scene
+from ghsplat_jax.synth import capture, config, dataset, render
+from ghsplat_jax.synth import scene as synth_scene
 
 W, H, VIEWS = 64, 48, 5
 
@@ -56,7 +57,7 @@ def test_colmap_text_describes_the_generator_cameras(written):
     s, cams, out = written
     colmap_cams, images, points = parse_colmap(out / "sparse" / "0")
     assert len(images) == VIEWS and len(colmap_cams) == 1
-    for cam, (iid, q, t, cid, name, _) in zip(cams, images):
+    for cam, (_iid, q, t, cid, name, _) in zip(cams, images):
         model, w, h, (fx, fy, cx, cy) = colmap_cams[cid]
         K = np.asarray(cam.K, np.float64)
         assert (model, w, h) == ("PINHOLE", W, H) and (out / "images" / name).exists()
@@ -72,7 +73,7 @@ def test_points3d_lie_on_visible_surfaces_and_reproject(written):
     _, images, points = parse_colmap(out / "sparse" / "0")
     depth = [read_pixels(out / "depth" / f"{i:05d}.exr") for i in range(VIEWS)]
     n_obs = 0
-    for (iid, q, t, cid, name, xy_id), cam in zip(images, cams):
+    for (iid, _q, _t, _cid, _name, xy_id), cam in zip(images, cams):
         K, w2c = np.asarray(cam.K, np.float64), np.asarray(cam.world_to_cam, np.float64)
         for k, (x, y, pid) in enumerate(xy_id):
             xyz = points[int(pid)][0]
@@ -93,7 +94,7 @@ def test_point_colours_are_what_the_photos_show(written):
     _, images, points = parse_colmap(out / "sparse" / "0")
     photos = {iid: read_pixels(out / "images" / name).astype(float) for iid, _, _, _, name, _ in images}
     observed = {iid: xy_id for iid, _, _, _, _, xy_id in images}
-    for pid, (_, rgb, track) in points.items():
+    for _pid, (_, rgb, track) in points.items():
         seen = [photos[iid][int(observed[iid][k][1]), int(observed[iid][k][0]), :3] for iid, k in track]
         np.testing.assert_allclose(rgb, np.mean(seen, axis=0), atol=0.51)
 

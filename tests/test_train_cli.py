@@ -9,12 +9,11 @@ import tomllib
 import numpy as np
 import pytest
 import tomli_w
+from test_train_loop import CONFIG
 
 from ghsplat_jax import cli
 from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
-
-from test_train_loop import CONFIG
 
 
 @pytest.fixture(scope="module")

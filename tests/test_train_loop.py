@@ -12,11 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ghsplat_jax.train import densify, step as step_mod
+from ghsplat_jax.train import densify
+from ghsplat_jax.train import step as step_mod
 from ghsplat_jax.train.checkpoint import load_checkpoint, read_meta
 from ghsplat_jax.train.config import TrainConfig
-from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, PLY_NAME, STATS_NAME
+from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 from ghsplat_jax.train.trainer import TrainingDivergedError, train
 
 # Every test here uses this config (same step settings: the XLA binary is shared through the
@@ -274,10 +275,11 @@ def test_pair_overflow_discards_the_step_and_grows_the_buffer(tmp_path, caplog):
 def test_compiled_step_follows_every_setting_of_its_config():
     """Steps are built from their config, not looked up by a hand-picked key: variants that differ
     only in a learning rate or a loss weight get their own compiled step, equal configs equal results."""
+    from raster_scenes import random_scene
+
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
-    from raster_scenes import random_scene
 
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
@@ -295,17 +297,19 @@ def test_compiled_step_follows_every_setting_of_its_config():
     assert out["loss"][1] != pytest.approx(out["base"][1])    # the loss weight reached the loss
 
 
-@pytest.mark.parametrize("extra", [dict(), dict(strategy={"name": "mcmc", "max_surfels": 100})], ids=["default", "mcmc"])
+@pytest.mark.parametrize("extra", [dict(), pytest.param(dict(strategy={"name": "mcmc", "max_surfels": 100}),
+                                                        marks=pytest.mark.slow)], ids=["default", "mcmc"])
 def test_parted_step_matches_the_one_program_step(extra):
     """The step whose compositor runs in two threads (`parted_step`) computes what the single
     program does: the same loss and metrics, and updates equal to float32 rounding (the parts'
     gradients add up in another order, and the parts walk in batches of another size), with every
     output on (median, distortion, normals) and with the MCMC regularisers, whose gradient does not
     pass through the renderer."""
+    from raster_scenes import random_scene
+
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
-    from raster_scenes import random_scene
 
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
@@ -332,12 +336,13 @@ def test_compacted_pool_steps_like_the_full_one_and_densification_end_compacts()
     """state.compact moves each live surfel with its moments and statistics: a step on the
     compacted pool gives the live surfels the same loss and updates as on the full pool. The
     default strategy compacts at its first round after densification ends."""
+    from raster_scenes import random_scene
+
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import compact, new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.strategies import make_strategy
     from ghsplat_jax.train.trainer import step_raster_config
-    from raster_scenes import random_scene
 
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
@@ -390,10 +395,11 @@ def test_every_matrix_product_of_the_step_asks_for_float32():
     """A GPU runs float32 products as TF32 by default, which broke the exactness tests on an
     H100 (alpha off by 3.6e-3): every product of the step, the compositor's hand-written backward
     and the SSIM blur included, must name full float32 precision (on a CPU it changes nothing)."""
+    from raster_scenes import random_scene
+
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.trainer import step_raster_config
-    from raster_scenes import random_scene
 
     view = dataset().train[0]
     image, cam = jnp.asarray(view.image), view.camera
@@ -408,6 +414,7 @@ def test_every_matrix_product_of_the_step_asks_for_float32():
     assert all(p == highest for p in precisions), precisions
 
 
+@pytest.mark.slow  # two runs with evaluations slowed on purpose (test_resume_reproduces_state covers resume)
 def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path, monkeypatch):
     """With test_curve_every, training writes the test views' metrics every so many steps to
     test_curve.jsonl, continued across a resume without repeated or missing points; its last

@@ -442,11 +442,12 @@ def test_accelerators_grow_buffers_by_doubling_and_keep_them(monkeypatch):
 
 def test_pool_growth_follows_the_backend(monkeypatch):
     """The default strategy grows a full pool to growth_bucket of what its candidates need."""
+    from raster_scenes import random_scene
+
     from ghsplat_jax.raster.render import capacity_bucket
     from ghsplat_jax.train.state import new_state, pad_params
     from ghsplat_jax.train.step_builder import make_train_step
     from ghsplat_jax.train.strategies import make_strategy
-    from raster_scenes import random_scene
 
     optimizers, _ = make_train_step(TrainConfig())
     params, active = pad_params(random_scene(3000, seed=1, degree=0), 3000)

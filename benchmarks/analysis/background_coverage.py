@@ -16,13 +16,14 @@ of the worst test views).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 import sys
+from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
+
 from ghsplat_jax.eval.metrics import COVERED_ABOVE, EMPTY_BELOW, background_cover, image_metrics
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster.render import render

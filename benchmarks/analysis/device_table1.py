@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
-from record import RESULTS, machine_record  # noqa: E402
 from analysis.run_progress import read_jsonl  # noqa: E402
+from record import RESULTS, machine_record  # noqa: E402
+
 from ghsplat_jax.train.run_dir import is_evaluated
 
 TICK_S = 10.0

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 import sys
+from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
+
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.train.run_dir import STATS_NAME, TEST_CURVE_NAME
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, ROOT, machine_record  # noqa: E402
+
 from ghsplat_jax.io_utils import write_json
 
 SCENES = {

@@ -44,6 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
 from speed.sim_speed import greenhouse_surfels  # noqa: E402
+
 from ghsplat_jax.io_utils import write_json
 
 DEFAULT_OUT = str(RESULTS / "fusion_profile.json")
@@ -127,7 +128,8 @@ def jax_ops_of(hlo: str) -> dict[str, list[str]]:
 
 
 def profile_camera(surfels: int, width: int, height: int, frames: int) -> dict:
-    from ghsplat_jax.sim import frames as frames_mod, robot as robot_mod
+    from ghsplat_jax.sim import frames as frames_mod
+    from ghsplat_jax.sim import robot as robot_mod
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
 
     s = jax.device_put(greenhouse_surfels(surfels))
@@ -190,12 +192,13 @@ def _owners(hlo: str) -> dict[str, str]:
 def profile_training_step(run_dir: Path, steps: int) -> dict:
     """Thread time of real training steps from a run's checkpoint, split by compositor loop."""
     import jax.numpy as jnp
+    from speed.raster_speed import exp_rate
+    from speed.train_speed import compiled_session
+
     from ghsplat_jax import host_memory
     from ghsplat_jax.train.config import load_config
     from ghsplat_jax.train.run_dir import load_training_data
     from ghsplat_jax.train.trainer import step_raster_config, view_order
-    from speed.raster_speed import exp_rate
-    from speed.train_speed import compiled_session
 
     host_memory.reuse_freed_memory()  # as `ghsplat train` runs
     # The step as one program, whose compiled text maps every op to its loop (the parted step's

@@ -32,8 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
-from ghsplat_jax.io_utils import write_json
 
+from ghsplat_jax.io_utils import write_json
 
 
 def body(i, state):
@@ -71,7 +71,8 @@ def variants(n: int, devices: int) -> dict:
             from jax import shard_map
         except ImportError:  # older jax
             from jax.experimental.shard_map import shard_map
-        from jax.sharding import Mesh, PartitionSpec as P
+        from jax.sharding import Mesh
+        from jax.sharding import PartitionSpec as P
         mesh = Mesh(np.array(jax.devices()[:2]), ("d",))
         both = shard_map(lambda xs: loop(xs[0], n)[None], mesh=mesh, in_specs=P("d"), out_specs=P("d"))
         out["two loops of n, two host devices"] = (jax.jit(lambda x2: both(x2).sum(0)), 2)

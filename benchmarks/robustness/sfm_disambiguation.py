@@ -28,9 +28,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
-from ghsplat_jax.io_utils import atomic_write, json_safe, save_figure, write_json
+
 from ghsplat_jax.experiments.sfm_rows import Case
 from ghsplat_jax.experiments.sfm_rows import run_case as _run_case
+from ghsplat_jax.io_utils import atomic_write, json_safe, save_figure, write_json
 
 RESULTS = RESULTS / "sfm_disambiguation"
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
+
 from ghsplat_jax.experiments.report import markdown_table
 from ghsplat_jax.io_utils import atomic_write, write_json
 from ghsplat_jax.sfm.evaluate import compare_model_dirs

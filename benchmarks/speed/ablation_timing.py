@@ -16,14 +16,15 @@ import argparse
 import dataclasses
 import json
 import os
-from pathlib import Path
 import sys
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import machine_record  # noqa: E402
 from speed.train_speed import time_steps  # noqa: E402
+
 from ghsplat_jax.experiments.charts import write_pareto_charts
 from ghsplat_jax.io_utils import write_json
 from ghsplat_jax.train.config import load_config

@@ -32,13 +32,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, ROOT, machine_record  # noqa: E402
 from speed.raster_speed import timed  # noqa: E402
+
 import ghsplat_jax as gs
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import binning_config, capacity_bucket, count_pairs
 from ghsplat_jax.train.run_dir import load_run, load_training_data
-
-
 
 # Changes of the run's settings timed beside the tile x chunk grid.
 VARIANTS = {"batch32": dict(batch_chunks=32), "batch64": dict(batch_chunks=64), "box3": dict(bounds="box3"),

@@ -27,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
+
 import ghsplat_jax as gs
 from ghsplat_jax.raster import rasterize
 from ghsplat_jax.raster.render import binning_config, capacity_bucket, count_pairs
@@ -121,7 +122,7 @@ def bench_case(width: int, height: int, n: int, repeats: int, variants) -> list[
         fns[name] = (row, forward, backward)
     samples = {name: {"forward": [], "forward_backward": []} for name in fns}
     for _ in range(repeats):
-        for name, (row, forward, backward) in fns.items():
+        for name, (_row, forward, backward) in fns.items():
             for key, fn in (("forward", forward), ("forward_backward", backward)):
                 samples[name][key].append(once(fn, s))
     for name, (row, _, _) in fns.items():

@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
+
 from ghsplat_jax.io_utils import atomic_write, json_safe, write_json  # noqa: E402
 from ghsplat_jax.paths import datasets_root  # noqa: E402
 from ghsplat_jax.sfm import pipeline  # noqa: E402

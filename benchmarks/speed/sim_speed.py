@@ -52,7 +52,8 @@ def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_w
     """Camera and LiDAR timings; LiDAR `variants` are "sampling/batching" (the first is the headline)."""
     import jax
 
-    from ghsplat_jax.sim import beams, robot as robot_mod
+    from ghsplat_jax.sim import beams
+    from ghsplat_jax.sim import robot as robot_mod
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
     from ghsplat_jax.sim.lidar import Lidar
 

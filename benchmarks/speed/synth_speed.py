@@ -57,7 +57,8 @@ def main() -> None:
     parser.add_argument("--option-views", type=int, default=3, help="views per renderer option")
     args = parser.parse_args()
 
-    from ghsplat_jax.synth import capture, dataset, render, scene as synth_scene
+    from ghsplat_jax.synth import capture, dataset, render
+    from ghsplat_jax.synth import scene as synth_scene
     from ghsplat_jax.synth.config import SceneConfig
 
     load_start = os.getloadavg()

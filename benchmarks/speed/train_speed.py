@@ -66,6 +66,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, ROOT, machine_record  # noqa: E402
 from speed.raster_speed import exp_rate  # noqa: E402
+
 from ghsplat_jax import host_memory
 from ghsplat_jax.io_utils import save_figure, write_json
 from ghsplat_jax.paths import datasets_root

@@ -22,9 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    from ghsplat_jax.data.ply import PlyError, save_ply
     from ghsplat_jax.scene.compose import compose
     from ghsplat_jax.scene.layout import load_layout
-    from ghsplat_jax.data.ply import PlyError, save_ply
     from ghsplat_jax.scene.tags import save_tags, tags_beside
 
     out = Path(args.out)

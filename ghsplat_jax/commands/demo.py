@@ -152,8 +152,8 @@ def main(args) -> int:
     stages.run("localize", "localize", out / "greenhouse.ply", "--out", out / "localize",
                "--max-frames", mode["loc_frames"], "--width", 2 * train_size[0], "--height", 2 * train_size[1])
 
-    from ghsplat_jax.commands.render import render_to_files
     import ghsplat_jax as gs
+    from ghsplat_jax.commands.render import render_to_files
 
     scene = gs.load_ply(out / "greenhouse.ply")
     eye, target = [hi[0] - lo[0] + 2.2, -1.2, 1.3], [0.5 * (hi[0] - lo[0]), 0.8, 0.3]

@@ -59,7 +59,6 @@ def render_to_files(surfels, camera, cfg, out: Path, name: str) -> dict[str, Pat
 
 def main(args) -> int:
     import ghsplat_jax as gs
-
     from ghsplat_jax.train.run_dir import raster_settings
 
     surfels = gs.load_ply(args.ply)

@@ -12,6 +12,7 @@ import logging
 import sys
 import time
 import tomllib
+
 from ghsplat_jax.sim import motion_args
 
 HELP = "Simulate the robot's camera, LiDAR and tf in a scene; record a ROS 2 bag (MCAP) or publish live over DDS."
@@ -62,10 +63,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    from tqdm.auto import tqdm
+
     from ghsplat_jax.sim import beams, scene_io, simulate
     from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
     from ghsplat_jax.sim.lidar import Lidar
-    from tqdm.auto import tqdm
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="ghsplat simulate: %(levelname)s %(message)s")

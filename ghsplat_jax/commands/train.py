@@ -41,8 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def resolve_config(args):
-    from ghsplat_jax.train.config import (ConfigError, TrainConfig, apply_overrides, load_config,
-                                          settings_missing_from)
+    from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides, load_config, settings_missing_from
     from ghsplat_jax.train.run_dir import CONFIG_NAME
 
     out = Path(args.out)

@@ -18,6 +18,17 @@ class Camera:
 
     K (3,3) intrinsics in pixels; world_to_cam (4,4); width and height are static, so
     cameras of one size can be stacked and vmapped.
+
+    Args:
+        K: (3,3) intrinsics in pixels (or (..., 3, 3) for a stack); host arrays and lists
+            become float32 device arrays.
+        world_to_cam: (4,4) rigid transform from world to camera coordinates (OpenCV axes).
+        width: image width in pixels (static: part of the pytree's structure).
+        height: image height in pixels (static).
+
+    Returns:
+        A frozen, jit- and vmap-able camera pytree; `scaled` returns the same view at
+        another resolution, `center` the camera centre in world coordinates.
     """
 
     K: jax.Array
@@ -54,7 +65,17 @@ class Camera:
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """world_to_cam (4,4) of an OpenCV camera at `eye` looking at `target`."""
+    """world_to_cam (4,4) of an OpenCV camera at `eye` looking at `target`.
+
+    Args:
+        eye: (3,) camera centre in world coordinates.
+        target: (3,) world point the camera looks at (the image centre).
+        up: (3,) world direction that appears upward in the image; any perpendicular is
+            used when the camera looks along it.
+
+    Returns:
+        A (4,4) float32 world-to-camera matrix (x right, y down, z forward).
+    """
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     forward = target - eye
     forward /= np.linalg.norm(forward)
@@ -71,6 +92,15 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 
 def intrinsics(width: int, height: int, fov_x_deg: float = 60.0) -> np.ndarray:
-    """K for a centred principal point and the given horizontal field of view."""
+    """K for a centred principal point and the given horizontal field of view.
+
+    Args:
+        width: image width in pixels.
+        height: image height in pixels.
+        fov_x_deg: horizontal field of view in degrees (square pixels: fx = fy).
+
+    Returns:
+        A (3,3) float32 intrinsics matrix with the principal point at (width/2, height/2).
+    """
     f = 0.5 * width / np.tan(np.deg2rad(fov_x_deg) / 2)
     return np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float32)

@@ -6,6 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -37,7 +38,7 @@ def _basis_planes(dirs, degree: int) -> list:
     return out
 
 
-def basis(dirs: jnp.ndarray, degree: int) -> jnp.ndarray:
+def basis(dirs: jax.Array | np.ndarray, degree: int) -> jax.Array:
     """SH basis values (..., (degree+1)^2) for unit directions (..., 3)."""
     return jnp.stack(_basis_planes(dirs, degree), axis=-1)
 

@@ -17,14 +17,26 @@ class Surfels:
     means (N,3) world positions; quats (N,4) w-x-y-z, not necessarily normalised;
     log_scales (N,2) tangent-plane scales; opacity_logits (N,) pre-sigmoid;
     sh_dc (N,3) and sh_rest (N,K,3) with K = (degree+1)^2 - 1 (3DGS real-SH basis).
+
+    Args:
+        means: (N,3) world positions.
+        quats: (N,4) rotations as w-x-y-z quaternions, not necessarily normalised.
+        log_scales: (N,2) log of the two tangent-plane scales.
+        opacity_logits: (N,) opacities before the sigmoid.
+        sh_dc: (N,3) degree-0 spherical-harmonic colour coefficients.
+        sh_rest: (N,K,3) higher-order coefficients, K = (degree+1)^2 - 1 (0, 3, 8 or 15).
+
+    Returns:
+        A frozen pytree of device arrays as a rule (host NumPy arrays after `to_numpy` or
+        `load_ply`); `num`, `sh_degree` and `opacity` are derived from the fields.
     """
 
-    means: jax.Array
-    quats: jax.Array
-    log_scales: jax.Array
-    opacity_logits: jax.Array
-    sh_dc: jax.Array
-    sh_rest: jax.Array
+    means: jax.Array | np.ndarray
+    quats: jax.Array | np.ndarray
+    log_scales: jax.Array | np.ndarray
+    opacity_logits: jax.Array | np.ndarray
+    sh_dc: jax.Array | np.ndarray
+    sh_rest: jax.Array | np.ndarray
 
     @property
     def num(self) -> int:
@@ -55,7 +67,20 @@ def sh_degree_from_rest(num_rest: int) -> int:
 
 def make_surfels(means, quats=None, log_scales=None, opacity_logits=None, sh_dc=None,
                  sh_rest=None, sh_degree: int = 0) -> Surfels:
-    """Build Surfels with sensible defaults for the fields that are left out."""
+    """Build Surfels with sensible defaults for the fields that are left out.
+
+    Args:
+        means: (N,3) world positions.
+        quats: (N,4) w-x-y-z quaternions; default the identity rotation.
+        log_scales: (N,2) log tangent-plane scales; default log(0.01) (1 cm surfels).
+        opacity_logits: (N,) pre-sigmoid opacities; default 0 (opacity 0.5).
+        sh_dc: (N,3) degree-0 colour coefficients; default 0 (mid grey).
+        sh_rest: (N,K,3) higher-order coefficients; default zeros of `sh_degree`'s K.
+        sh_degree: the SH degree (0-3) that sizes the default `sh_rest`.
+
+    Returns:
+        Surfels with float32 device-array fields.
+    """
     means = jnp.asarray(means, jnp.float32)
     n = means.shape[0]
     k = (sh_degree + 1) ** 2 - 1
@@ -71,6 +96,17 @@ def make_surfels(means, quats=None, log_scales=None, opacity_logits=None, sh_dc=
 
 
 def concatenate(parts: list[Surfels]) -> Surfels:
+    """Join sets of surfels into one, in order.
+
+    Args:
+        parts: Surfels of one SH degree.
+
+    Returns:
+        Surfels holding every part's surfels, the first part's first.
+
+    Raises:
+        ValueError: when the parts have different SH degrees.
+    """
     degrees = {p.sh_degree for p in parts}
     if len(degrees) > 1:
         raise ValueError(f"cannot concatenate surfels of different SH degrees {sorted(degrees)}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +28,14 @@ _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", 
 
 
 class PlyError(DatasetError):
-    """A PLY file that cannot be read as Gaussians; the message names the file."""
+    """A PLY file that cannot be read as Gaussians; the message names the file.
+
+    Args:
+        *args: the message, as for any exception (the file's path, then what is wrong).
+
+    Returns:
+        The exception, raised by `load_ply` (a DatasetError, so a ValueError too).
+    """
 
 
 _MAX_HEADER_LINES = 10_000  # a real Gaussian PLY header has well under a hundred lines
@@ -69,7 +77,7 @@ def _header_line(path: Path, number: int, words: list[str], state: dict) -> None
 def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, str]], int]:
     if fh.readline(16).strip() != b"ply":
         raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
-    state = {"format": None, "count": None, "props": [], "in_vertex": False}
+    state: dict[str, Any] = {"format": None, "count": None, "props": [], "in_vertex": False}
     for number in range(2, _MAX_HEADER_LINES):
         line = fh.readline(4096)
         if not line:
@@ -142,10 +150,21 @@ def load_ply(path: str | os.PathLike, finite: bool = True) -> Surfels:
     3DGS files have three scales: the largest two are kept and a warning says so. NaN or Inf
     values are an error (they must never reach a render) unless `finite=False`, for tools
     that drop such surfels themselves (`ghsplat export`).
+
+    Args:
+        path: the PLY file (binary little- or big-endian, or ASCII).
+        finite: refuse NaN or Inf values (True) or pass them through (False).
+
+    Returns:
+        Surfels with NumPy float32 fields; the SH degree follows the file's f_rest count.
+
+    Raises:
+        PlyError: the file is not a readable Gaussian PLY, or (with `finite`) holds
+            non-finite values.
     """
     path = Path(path)
     v = read_vertices(path)
-    names = v.dtype.names
+    names = v.dtype.names or ()  # a structured array: never None
     missing = [n for n in _REQUIRED if n not in names]
     if missing:
         raise PlyError(f"{path}: not a Gaussian PLY, missing properties {missing}")
@@ -204,7 +223,7 @@ def surfel_from_3dgs(log_scales3: np.ndarray, quats: np.ndarray) -> tuple[np.nda
 
 
 def is_3dgs_file(path: str | os.PathLike) -> bool:
-    return "scale_2" in read_vertices(path).dtype.names
+    return "scale_2" in (read_vertices(path).dtype.names or ())
 
 
 def surfels_to_vertices(s: Surfels, viewer_compatible: bool = False) -> np.ndarray:
@@ -232,7 +251,19 @@ def surfels_to_vertices(s: Surfels, viewer_compatible: bool = False) -> np.ndarr
 
 
 def save_ply(s: Surfels, path: str | os.PathLike, viewer_compatible: bool = False) -> Path:
-    """Write Surfels as a binary 2DGS PLY (atomically); `viewer_compatible` adds scale_2."""
+    """Write Surfels as a binary 2DGS PLY (atomically); `viewer_compatible` adds scale_2.
+
+    Args:
+        s: the surfels to write (host or device arrays).
+        path: the file to write; it is replaced atomically.
+        viewer_compatible: add a thin third scale (scale_2) so that 3DGS viewers load the file.
+
+    Returns:
+        The path written, as a Path.
+
+    Raises:
+        ValueError: when a field holds NaN or Inf.
+    """
     path = Path(path)
     s = s.to_numpy()
     bad = [f for f in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -242,7 +273,7 @@ def save_ply(s: Surfels, path: str | os.PathLike, viewer_compatible: bool = Fals
     v = surfels_to_vertices(s, viewer_compatible)
     header = "ply\nformat binary_little_endian 1.0\n"
     header += f"element vertex {len(v)}\n"
-    header += "".join(f"property float {name}\n" for name in v.dtype.names)
+    header += "".join(f"property float {name}\n" for name in v.dtype.names or ())
     header += "end_header\n"
     with atomic_write(path) as fh:
         fh.write(header.encode("ascii"))

@@ -99,7 +99,7 @@ def _owner(starts: jax.Array, counts: jax.Array, size: int) -> jax.Array:
 
 
 def bin_pairs(p: Projected, width: int, height: int, grid: TileGrid, capacity: int,
-              chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | None = None,
+              chunk_size: int, num_chunks: int, tight: bool = True, boxes: jax.Array | np.ndarray | None = None,
               sort: str = "auto") -> Layout:
     """`boxes` (T, 4): render only points inside these per-tile boxes (`samples.PixelSamples`):
     tiles with an empty box get no pairs, and the exact test uses the box, not the tile.
@@ -245,7 +245,7 @@ def _conic(q, dx, dy):
 
 
 def tile_touched(p: Projected, surfel: jax.Array, tile: jax.Array, tile_xy: tuple[jax.Array, jax.Array],
-                 grid: TileGrid, boxes: jax.Array | None = None) -> jax.Array:
+                 grid: TileGrid, boxes: jax.Array | np.ndarray | None = None) -> jax.Array:
     """Whether a tile's pixel centres (or the box of its sample points) meet the region where
     the surfel's alpha can reach 1/255: its ellipse (the minimum of the conic over the
     rectangle is <= 0) or its filter disc. Exact up to float32 rounding, which a small margin

@@ -40,15 +40,24 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.raster.binning import chunk_layout, cumsum, tile_corner
-from ghsplat_jax.raster.composite import (LOG_T_FLOOR, NUM_FEATURES, T_MIN, Z, Static, feature_columns,
-                                          local_pixels, ndc_depth, segmented_exclusive_cumsum)
+from ghsplat_jax.raster.composite import (
+    LOG_T_FLOOR,
+    NUM_FEATURES,
+    T_MIN,
+    Static,
+    Z,
+    feature_columns,
+    local_pixels,
+    ndc_depth,
+    segmented_exclusive_cumsum,
+)
 from ghsplat_jax.raster.project import Projected
 
 # Columns of the per-surfel table (gathered per pair): homography about the centre, det(M),
@@ -171,7 +180,7 @@ def split_chunks(first, used, parts: int):
     return jnp.concatenate([jnp.zeros(1, jnp.int32), starts, used[None]])
 
 
-def _batches(lo, hi, batch: int):
+def _batches(lo, hi, batch: int) -> tuple[Any, Any]:
     """The loop range over batches that hold chunks [lo, hi)."""
     return lo // batch, (hi + batch - 1) // batch
 

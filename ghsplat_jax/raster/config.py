@@ -8,12 +8,29 @@ import jax
 
 
 class RasterOverflowError(RuntimeError):
-    """More tile-surfel pairs than the static pair capacity; nothing is ever dropped quietly."""
+    """More tile-surfel pairs than the static pair capacity; nothing is ever dropped quietly.
+
+    Args:
+        *args: the message, as for any exception (it gives the pair count and the capacity).
+
+    Returns:
+        The exception, raised by `render` (eagerly, or under jit with `on_overflow="raise"`).
+    """
 
 
 @dataclasses.dataclass(frozen=True)
 class RasterConfig:
-    """Static rasterizer settings (hashable, so they can be jit static arguments)."""
+    """Static rasterizer settings (hashable, so they can be jit static arguments).
+
+    Args:
+        near, far, background, tile_size, bounds, lowpass_filter, chunk_size, batch_chunks,
+            part_batch_chunks, compositor, backward, backward_skip, backend, median,
+            distortion, depth_normal, sh_degree, sort, pair_capacity, on_overflow: the
+            fields below, each described where it is declared; all keywords, all defaulted.
+
+    Returns:
+        A frozen, validated configuration (a bad value raises ValueError on construction).
+    """
 
     near: float = 0.2                      # cull centres and skip hits nearer than this (metres)
     far: float = 100.0                     # far plane of the NDC depth used by the distortion term
@@ -96,7 +113,15 @@ class RasterStats:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RenderOutput:
-    """Per-pixel outputs (H,W,...), or per sample point (N,...) for a `samples` render."""
+    """Per-pixel outputs (H,W,...), or per sample point (N,...) for a `samples` render.
+
+    Args:
+        rgb, alpha, depth, median_depth, normal, distortion, visible, radii, stats: the
+            fields below, as `render` fills them.
+
+    Returns:
+        A pytree of arrays (jit and vmap carry it through); its fields are the render's outputs.
+    """
 
     rgb: jax.Array           # (H,W,3) over the background
     alpha: jax.Array         # (H,W) accumulated opacity

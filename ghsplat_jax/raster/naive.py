@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, last_median, evaluate_chunk, pixel_sums
+from ghsplat_jax.raster.composite import T_MIN, ChunkParams, Static, evaluate_chunk, last_median, pixel_sums
 
 
 def composite_dense(st: Static, pair_params: ChunkParams, pair_valid, tile_slots: int,

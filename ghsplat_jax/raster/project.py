@@ -17,6 +17,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ghsplat_jax.core import quaternions, sh
 from ghsplat_jax.core.camera import Camera
@@ -57,7 +58,7 @@ class Projected:
     culled_near: jax.Array  # (N,) bool
 
 
-def _finite_rows(x: jax.Array) -> jax.Array:
+def _finite_rows(x: jax.Array | np.ndarray) -> jax.Array:
     return jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
 
 

@@ -6,6 +6,8 @@ tiled rasterizer is tested against (see docs/design.md). Slow; for small tests o
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from ghsplat_jax.core.camera import Camera
@@ -29,7 +31,7 @@ def _quat_to_matrix(q):
 
 def _sh_color(s: Surfels, dirs, degree):
     x, y, z = dirs.T
-    basis = [np.full_like(x, _C0)]
+    basis: Any = [np.full_like(x, _C0)]  # the columns, then their stack
     if degree >= 1:
         c1 = 0.4886025119029199
         basis += [-c1 * y, c1 * z, -c1 * x]

@@ -211,6 +211,23 @@ def render(s: Surfels, cam: Camera, cfg: RasterConfig | None = None, *,
     per `cfg.on_overflow`). Eagerly, the capacity is sized from an exact pair count, so a
     render never loses a pair and recompiles only when a capacity bucket grows.
     `samples` (`samples.pixel_samples`): render only those image points, (N,) outputs.
+
+    Args:
+        s: the surfels (host or device arrays; cast to float32).
+        cam: the camera (its width and height size the image).
+        cfg: rasterizer settings; None uses `RasterConfig()`.
+        means2d_probe: optional (N,2) zeros added to the projected centres, so that a
+            gradient with respect to it gives the screen-space gradients densification uses.
+        samples: optional sample points to render instead of the full image.
+
+    Returns:
+        RenderOutput: (H,W,...) images (or (N,...) per sample point) of rgb, alpha, depth,
+        median_depth, normal and distortion, the (N,) visible mask and radii, and the
+        binning stats.
+
+    Raises:
+        RasterOverflowError: when more tile-surfel pairs are needed than the capacity allows
+            (under jit with `on_overflow="raise"`).
     """
     cfg = RasterConfig() if cfg is None else cfg
     s = _as_surfels(s)

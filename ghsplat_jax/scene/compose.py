@@ -106,8 +106,8 @@ def _colour_fn(spec: SurfaceSpec, placed_rows: dict[str, list[Surfels]]) -> surf
     if spec.texture is not None:
         return surfaces.texture_colour(spec.texture, spec.texture_size)
     if spec.ground_from is not None:
-        from ghsplat_jax.scene.merge import merge
         from ghsplat_jax.data.ply import load_ply
+        from ghsplat_jax.scene.merge import merge
 
         if spec.ground_from in placed_rows:
             captured = merge(placed_rows[spec.ground_from], policy="truncate")

@@ -57,8 +57,7 @@ def sphere_mask(s: Surfels, center, radius: float, keep_inside: bool = True) -> 
 
 def hull_mask(s: Surfels, points, keep_inside: bool = True) -> np.ndarray:
     """Inside the convex hull of `points` (M,3), M >= 4 not coplanar (Delaunay test)."""
-    from scipy.spatial import Delaunay
-    from scipy.spatial import QhullError
+    from scipy.spatial import Delaunay, QhullError
 
     points = np.asarray(points, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:

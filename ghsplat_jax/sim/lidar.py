@@ -249,7 +249,6 @@ class Lidar:
         import jax.numpy as jnp
 
         from ghsplat_jax.core.camera import Camera
-
         from ghsplat_jax.sim.camera_sensor import sensor_render_fn
 
         cfg = self._config()

@@ -13,6 +13,7 @@ import numpy as np
 
 from ghsplat_jax.sim import frames
 
+
 # The service /register_camera uses the standard sensor_msgs/srv/SetCameraInfo; rosbags
 # ships message types only, so its request and response are registered as messages.
 class MessageError(ValueError):

@@ -29,7 +29,8 @@ def load_robot(path: str | None):
 def load_trajectory(args: argparse.Namespace, scene, robot):
     """The trajectory `--trajectory` names: aisles of the scene's rows, waypoints, or velocity
     commands clamped to `robot`'s limits."""
-    from ghsplat_jax.sim import scene_io, trajectory as tj
+    from ghsplat_jax.sim import scene_io
+    from ghsplat_jax.sim import trajectory as tj
 
     if args.trajectory == "aisles":
         rows = tj.load_row_boxes(args.rows) if args.rows else scene_io.scene_rows(scene)

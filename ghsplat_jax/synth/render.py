@@ -127,7 +127,7 @@ def _sun_visibility(scene: Scene, points, normals_sun_side, shadows: bool, sampl
     b = np.cross(sun, a)
     radius = np.tan(np.deg2rad(rc.sun_radius_deg))
     visible = np.zeros(len(points))
-    for k in range(samples):
+    for _k in range(samples):
         if samples == 1:
             dirs = np.broadcast_to(sun, points.shape)
         else:  # uniform points on the sun disc, a fresh pattern per sample

@@ -27,10 +27,10 @@ def save_checkpoint(path: str | os.PathLike, state, extra: dict, aux=None) -> Pa
     path = Path(path)
     leaves = jax.tree_util.tree_flatten_with_path(state)[0]
     arrays = {}
-    for i, (p, leaf) in enumerate(leaves):
+    for i, (_p, leaf) in enumerate(leaves):
         arrays[f"leaf_{i:04d}"] = np.asarray(leaf)
     aux_leaves = jax.tree_util.tree_flatten_with_path(aux)[0] if aux is not None else []
-    for i, (p, leaf) in enumerate(aux_leaves):
+    for i, (_p, leaf) in enumerate(aux_leaves):
         arrays[f"aux_{i:04d}"] = np.asarray(leaf)
     active = np.asarray(state.active)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):

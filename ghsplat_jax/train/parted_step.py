@@ -27,8 +27,14 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core.camera import Camera
 from ghsplat_jax.raster import carried
-from ghsplat_jax.raster.render import (bin_projected, chunk_surfels, compositor_static, default_capacity,
-                                       project_surfels, render_outputs)
+from ghsplat_jax.raster.render import (
+    bin_projected,
+    chunk_surfels,
+    compositor_static,
+    default_capacity,
+    project_surfels,
+    render_outputs,
+)
 from ghsplat_jax.train.step import TRACE_COUNTS, apply_gradients, image_loss, regularisers, step_surfels
 
 

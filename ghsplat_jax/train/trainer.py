@@ -27,11 +27,26 @@ from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.config import TrainConfig, save_config
-from ghsplat_jax.train.run_dir import (CHECKPOINT_NAME, CONFIG_NAME, PLY_NAME, STATS_NAME, TEST_CURVE_NAME,
-                                       load_run_checkpoint, load_training_data, peak_rss_mb)
-from ghsplat_jax.train.state import (TrainState, compiles_cost_more_than_slots, initial_surfels, needs_random_init,
-                                    new_state, pad_params, random_init_box)
 from ghsplat_jax.train.resolution import box_downscale, factor_at, scale_intrinsics, spectrum_schedule
+from ghsplat_jax.train.run_dir import (
+    CHECKPOINT_NAME,
+    CONFIG_NAME,
+    PLY_NAME,
+    STATS_NAME,
+    TEST_CURVE_NAME,
+    load_run_checkpoint,
+    load_training_data,
+    peak_rss_mb,
+)
+from ghsplat_jax.train.state import (
+    TrainState,
+    compiles_cost_more_than_slots,
+    initial_surfels,
+    needs_random_init,
+    new_state,
+    pad_params,
+    random_init_box,
+)
 from ghsplat_jax.train.step_builder import make_train_step
 from ghsplat_jax.train.stopping import PlateauRule
 from ghsplat_jax.train.strategies import StrategyContext, last_reset_before, make_strategy  # noqa: F401 (re-export)

@@ -28,10 +28,10 @@ from typing import Callable
 
 import numpy as np
 
-from ghsplat_jax.transport import dds_types as D
 from ghsplat_jax.sim import frames, messages
-from ghsplat_jax.sim.messages import MessageError
 from ghsplat_jax.sim.camera_sensor import CameraModel, CameraRenderer
+from ghsplat_jax.sim.messages import MessageError
+from ghsplat_jax.transport import dds_types as D
 
 log = logging.getLogger("ghsplat.sim.node")
 

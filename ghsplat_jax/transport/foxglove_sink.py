@@ -57,7 +57,8 @@ def camera_calibration(msg):
 
 def point_cloud(msg):
     """PointCloud2 -> PointCloud with the same packed bytes (the cloud sits at its frame's origin)."""
-    from foxglove.messages import PackedElementField, PackedElementFieldNumericType as N, PointCloud, Pose, Quaternion, Vector3
+    from foxglove.messages import PackedElementField, PointCloud, Pose, Quaternion, Vector3
+    from foxglove.messages import PackedElementFieldNumericType as N
 
     types = {1: N.Int8, 2: N.Uint8, 3: N.Int16, 4: N.Uint16, 5: N.Int32, 6: N.Uint32, 7: N.Float32, 8: N.Float64}
     if msg.is_bigendian:

@@ -10,14 +10,32 @@
 Any strategy can prune by contribution (base.py: `contribution_prune`).
 """
 
-from ghsplat_jax.train.strategies.base import (REGISTRY, Strategy, StrategyContext, StrategySettings,
-                                               accumulated_weights, contribution_prune, is_opacity_reset,
-                                               last_reset_before, loss_weight, make_strategy, register,
-                                               settings_from, strategy_class, strategy_names)
-from ghsplat_jax.train.strategies.default import BudgetSettings, BudgetStrategy, DefaultSettings, DefaultStrategy
-from ghsplat_jax.train.strategies.mcmc import (MCMCSettings, MCMCStrategy, relocate, relocation_integral,
-                                               relocation_values, sample_in_proportion)
 from ghsplat_jax.train.strategies.auto import AutoSettings, AutoStrategy  # noqa: E402 (after mcmc, which it extends)
+from ghsplat_jax.train.strategies.base import (
+                                               REGISTRY,
+                                               Strategy,
+                                               StrategyContext,
+                                               StrategySettings,
+                                               accumulated_weights,
+                                               contribution_prune,
+                                               is_opacity_reset,
+                                               last_reset_before,
+                                               loss_weight,
+                                               make_strategy,
+                                               register,
+                                               settings_from,
+                                               strategy_class,
+                                               strategy_names,
+)
+from ghsplat_jax.train.strategies.default import BudgetSettings, BudgetStrategy, DefaultSettings, DefaultStrategy
+from ghsplat_jax.train.strategies.mcmc import (
+                                               MCMCSettings,
+                                               MCMCStrategy,
+                                               relocate,
+                                               relocation_integral,
+                                               relocation_values,
+                                               sample_in_proportion,
+)
 
 __all__ = ["REGISTRY", "AutoSettings", "AutoStrategy", "BudgetSettings", "BudgetStrategy", "DefaultSettings",
            "DefaultStrategy", "MCMCSettings", "MCMCStrategy", "Strategy", "StrategyContext", "StrategySettings",

@@ -13,8 +13,15 @@ import numpy as np
 
 from ghsplat_jax.train import densify
 from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
-from ghsplat_jax.train.strategies.base import (Strategy, StrategySettings, is_opacity_reset, last_reset_before, log,
-                                               register)
+from ghsplat_jax.train.strategies.base import (
+    Strategy,
+    StrategySettings,
+    is_opacity_reset,
+    last_reset_before,
+    log,
+    register,
+)
+
 
 @dataclasses.dataclass(frozen=True)
 class DefaultSettings(StrategySettings):

@@ -21,6 +21,7 @@ from ghsplat_jax.train.state import TrainState
 from ghsplat_jax.train.strategies.base import Strategy, StrategySettings, register
 from ghsplat_jax.train.strategies.default import capped_pool
 
+
 def relocation_integral(opacity: jax.Array, n: jax.Array, nodes: int = 24) -> jax.Array:
     """I(o, N) = integral_0^o (1 - (1 - t)^N) / t dt, the closed form of the 3DGS-MCMC sum
     sum_{i=1..N} sum_{k<i} C(i-1, k) (-1)^k o^(k+1) / (k+1) (hockey-stick identity), evaluated by
