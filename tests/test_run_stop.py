@@ -7,14 +7,13 @@ import json
 import shutil
 
 import numpy as np
+from test_train_loop import CONFIG
 
 from ghsplat_jax.experiments import runner
 from ghsplat_jax.experiments.report import table1_markdown
 from ghsplat_jax.experiments.runner import collect, load_experiment, run_experiment
 from ghsplat_jax.train.run_dir import has_checkpoint, read_metrics
 from ghsplat_jax.train.synthetic import cached_synthetic_dataset, write_transforms
-
-from test_train_loop import CONFIG
 
 TWO = '''name = "e"
 output = "{out}"

@@ -15,7 +15,9 @@ pytest.importorskip("pycolmap")
 from ghsplat_jax.data import load_dataset
 from ghsplat_jax.data.images import read_pixels
 from ghsplat_jax.sfm import triangulate as tri
-from ghsplat_jax.synth import capture, config, dataset as synth_dataset, scene as synth_scene
+from ghsplat_jax.synth import capture, config
+from ghsplat_jax.synth import dataset as synth_dataset
+from ghsplat_jax.synth import scene as synth_scene
 
 VIEWS, W, H = 12, 320, 240
 

@@ -22,10 +22,9 @@ import argparse
 import dataclasses
 import re
 import shutil
+import sys
 import time
 from pathlib import Path
-
-import sys
 
 import numpy as np
 

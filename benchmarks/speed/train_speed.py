@@ -108,13 +108,13 @@ def compiled_session(config: TrainConfig, dataset, checkpoint: Path | None, tran
 def session_class(trainer_module):
     """The trainer's session class in this tree or in an older revision's (which named it _Session,
     and its restore _restore): the benchmark compares revisions."""
-    return getattr(trainer_module, "TrainingSession", None) or getattr(trainer_module, "_Session")
+    return getattr(trainer_module, "TrainingSession", None) or trainer_module._Session
 
 
 def _compiled(session, checkpoint: Path | None, transform=None):
     """`session` at `checkpoint` (or as it is), `transform(session)` applied, its step compiled."""
     if checkpoint is not None:
-        (getattr(session, "restore", None) or getattr(session, "_restore"))(checkpoint)
+        (getattr(session, "restore", None) or session._restore)(checkpoint)
     if transform is not None:
         transform(session)
     state0 = session.state

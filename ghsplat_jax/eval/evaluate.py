@@ -12,8 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.eval.metrics import (TRAIN_TEST_GAP_DB, background_cover, image_metrics, psnr_outliers,
-                                      structure_gap, structure_metrics, summarize)
+from ghsplat_jax.eval.metrics import (
+    TRAIN_TEST_GAP_DB,
+    background_cover,
+    image_metrics,
+    psnr_outliers,
+    structure_gap,
+    structure_metrics,
+    summarize,
+)
 from ghsplat_jax.io_utils import code_revision, device_name, machine_info
 from ghsplat_jax.train import run_dir as rd
 

@@ -27,9 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
-from ghsplat_jax.sfm import crosscheck
+from ghsplat_jax.sfm import crosscheck, folds
 from ghsplat_jax.sfm import disambiguate as dis
-from ghsplat_jax.sfm import folds
 from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
 from ghsplat_jax.sfm.matchgraph import (
