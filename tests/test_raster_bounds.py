@@ -150,7 +150,7 @@ def test_eager_renders_along_a_moving_camera_compile_a_few_times():
     """A camera walking towards a scene needs more tile-surfel pairs every frame; eager renders
     reuse the compiled buffer while it fits and grow it with headroom, so 8 poses compile a
     handful of programs, not one per capacity bucket crossed."""
-    from ghsplat_jax.raster.render import _EAGER_CAPACITY, rasterize_jit, render
+    from ghsplat_jax.raster.render import _EAGER_CAPACITY, capacity_bucket, rasterize_jit, render
 
     scene = random_scene(1500, seed=3)
     cfg = gs.RasterConfig(tile_size=8)
@@ -163,5 +163,6 @@ def test_eager_renders_along_a_moving_camera_compile_a_few_times():
         needs.append(int(out.stats.num_pairs))
         used.append(max(_EAGER_CAPACITY.values()))
     compiles = rasterize_jit._cache_size() - before
-    assert needs[-1] > 1.9 * needs[0]  # 4.9k to 9.7k pairs: sized per frame, 5 buckets and 5 compiles
-    assert all(u >= n for u, n in zip(used, needs)) and compiles <= 2, (needs, used, compiles)
+    per_frame = len({capacity_bucket(n) for n in needs})  # what sizing each frame alone compiled
+    assert needs[-1] > 1.9 * needs[0] and per_frame >= 5  # 4.9k to 9.7k pairs
+    assert all(u >= n for u, n in zip(used, needs)) and compiles <= 3, (needs, used, compiles)

@@ -225,14 +225,14 @@ def test_training_images_carry_their_alpha_to_the_step_only_for_the_normal_loss(
 def test_ctrl_c_saves_a_checkpoint(tmp_path, monkeypatch):
     from ghsplat_jax.train import trainer
 
-    real_step = trainer._Session.step
+    real_step = trainer.TrainingSession.step
 
     def step(self, i, **kwargs):
         if i == 5:
             raise KeyboardInterrupt
         return real_step(self, i, **kwargs)
 
-    monkeypatch.setattr(trainer._Session, "step", step)
+    monkeypatch.setattr(trainer.TrainingSession, "step", step)
     with pytest.raises(KeyboardInterrupt):
         train(CONFIG, tmp_path / "int", dataset=dataset())
     assert read_meta(tmp_path / "int" / CHECKPOINT_NAME)["step"] == 5
@@ -246,14 +246,14 @@ def test_sigterm_saves_a_checkpoint_like_ctrl_c(tmp_path, monkeypatch):
 
     from ghsplat_jax.train import trainer
 
-    real_step = trainer._Session.step
+    real_step = trainer.TrainingSession.step
 
     def step(self, i, **kwargs):
         if i == 4:
             os.kill(os.getpid(), signal.SIGTERM)
         return real_step(self, i, **kwargs)
 
-    monkeypatch.setattr(trainer._Session, "step", step)
+    monkeypatch.setattr(trainer.TrainingSession, "step", step)
     previous = signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt):
         train(CONFIG, tmp_path / "term", dataset=dataset())
