@@ -27,8 +27,8 @@ import jax.numpy as jnp
 
 from ghsplat_jax.train import densify
 from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
-from ghsplat_jax.train.strategies.base import StrategySettings, register
-from ghsplat_jax.train.strategies.mcmc import MCMCStrategy, mcmc_noise_jit, mcmc_round
+from ghsplat_jax.train.strategies.base import register
+from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_noise_jit, mcmc_round
 
 log = logging.getLogger("ghsplat.train")
 
@@ -36,7 +36,7 @@ GROWTH_WEIGHTS = ("error", "opacity")
 
 
 @dataclasses.dataclass(frozen=True)
-class AutoSettings(StrategySettings):
+class AutoSettings(MCMCSettings):
     """The self-sizing strategy (`recipe = "auto"` uses it).
 
     Args:
@@ -45,19 +45,15 @@ class AutoSettings(StrategySettings):
         grow_rate: while growing, each refinement round adds this fraction of the live count.
         growth_weight: "error" draws new surfels by opacity x mean projected-centre gradient,
             "opacity" by opacity alone (3DGS-MCMC).
-        min_opacity: a surfel below this opacity is dead and relocated.
-        noise_lr: position noise = this x the means learning rate x the in-plane covariance.
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
         ceiling_per_pixel: the ceiling when max_surfels is 0.
+        min_opacity, noise_lr: as MCMCSettings.
     """
 
-    min_gain_db: float = 0.5
     grow_rate: float = 0.1
+    min_gain_db: float = 0.5
     growth_weight: str = "error"
-    min_opacity: float = 0.005
-    noise_lr: float = 5e5
-    max_surfels: int = 0
     ceiling_per_pixel: float = 2.0
 
     def validate(self) -> None:
@@ -68,11 +64,8 @@ class AutoSettings(StrategySettings):
             raise ValueError(f"grow_rate must be positive, got {self.grow_rate}")
         if self.growth_weight not in GROWTH_WEIGHTS:
             raise ValueError(f"growth_weight must be one of {GROWTH_WEIGHTS}, got {self.growth_weight!r}")
-        if not 0 < self.min_opacity < 1:
-            raise ValueError(f"min_opacity must be in (0, 1), got {self.min_opacity}")
-        if self.noise_lr < 0 or self.max_surfels < 0 or not self.ceiling_per_pixel > 0:
-            raise ValueError("noise_lr and max_surfels must be >= 0 and ceiling_per_pixel positive, got "
-                             f"{self.noise_lr}, {self.max_surfels}, {self.ceiling_per_pixel}")
+        if not self.ceiling_per_pixel > 0:
+            raise ValueError(f"ceiling_per_pixel must be positive, got {self.ceiling_per_pixel}")
 
 
 def growth_weights(state: TrainState, kind: str) -> jax.Array:
