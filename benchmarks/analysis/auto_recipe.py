@@ -139,7 +139,7 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path) -> None:
     for i, r in enumerate(r for r in runs if r["scene"] == scene):
         c = r["curve"]
         ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-o", ms=3, color=f"C{i}",
-                label=f"auto, seed {r['seed']} ({r['num_gaussians']:,} surfels)")
+                label=r.get("label") or f"auto, seed {r['seed']} ({r['num_gaussians']:,} surfels)")
     for variant, marker, color in (("default", "s", "black"), ("compact", "D", "gray")):
         ref = refs.get((scene, variant))
         if ref and ref.get("train_seconds"):
@@ -219,8 +219,9 @@ def main(argv=None) -> int:
     record = {"machine": machine_record(start_backend=False), "code_revision": code_revision()}
     scenes = sorted({r["scene"] for r in runs + unfinished})
     for scene in scenes:
-        chart(scene, runs + [dict(u, seed=f"{u['variant']}, interrupted", num_gaussians=u["num_surfels_then"] or 0)
-                             for u in unfinished], refs, args.out / f"psnr_vs_time_{scene}.png")
+        interrupted = [dict(u, label=f"{u['variant']}, interrupted at step {u['last_scored_step']} "
+                                     f"({u['num_surfels_then'] or 0:,} surfels)") for u in unfinished]
+        chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png")
     write_json(args.out / "results.json", {"report": record, "summary": summary, "runs": runs,
                                            "unfinished": unfinished})
     with atomic_write(args.out / "README.md", "w") as fh:
