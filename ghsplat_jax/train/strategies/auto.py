@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from ghsplat_jax.train import densify
 from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
 from ghsplat_jax.train.strategies.base import register
-from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_noise_jit, mcmc_round
+from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round
 
 log = logging.getLogger("ghsplat.train")
 
@@ -141,14 +141,8 @@ class AutoStrategy(MCMCStrategy):
             key = jax.random.fold_in(jax.random.PRNGKey(c.seed), it)
             state, counts = auto_round_jit(state, key, jnp.int32(cap), min_opacity=float(s.min_opacity),
                                            grow_rate=float(s.grow_rate) if growing else 0.0, kind=s.growth_weight)
-            counts = {k: int(v) for k, v in counts.items()}
-            sstate = dict(sstate, relocated=sstate["relocated"] + counts["relocated"],
-                          added=sstate["added"] + counts["added"])
-            info.update(counts)
-        if s.noise_lr > 0:
-            key = jax.random.fold_in(jax.random.PRNGKey(c.seed + 1), it)
-            state = mcmc_noise_jit(state, key, jnp.float32(s.noise_lr * ctx.means_lr(it - 1)))
-        return state, sstate, info
+            sstate = self.count_round(sstate, counts, info)
+        return self.add_noise(ctx, state, it), sstate, info
 
     def on_validation(self, ctx, state, sstate, it, val):
         if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1:

@@ -182,11 +182,20 @@ class MCMCStrategy(Strategy):
             key = jax.random.fold_in(jax.random.PRNGKey(c.seed), it)
             state, counts = mcmc_round_jit(state, key, sstate["max_surfels"], min_opacity=float(s.min_opacity),
                                            grow_rate=float(s.grow_rate))
-            counts = {k: int(v) for k, v in counts.items()}
-            sstate = dict(sstate, relocated=sstate["relocated"] + counts["relocated"],
-                          added=sstate["added"] + counts["added"])
-            info.update(counts)
-        if s.noise_lr > 0:
-            key = jax.random.fold_in(jax.random.PRNGKey(c.seed + 1), it)
-            state = mcmc_noise_jit(state, key, jnp.float32(s.noise_lr * ctx.means_lr(it - 1)))
-        return state, sstate, info
+            sstate = self.count_round(sstate, counts, info)
+        return self.add_noise(ctx, state, it), sstate, info
+
+    @staticmethod
+    def count_round(sstate: dict, counts: dict, info: dict) -> dict:
+        """Add a refinement round's relocated and added counts to the state (and to `info`)."""
+        counts = {k: int(v) for k, v in counts.items()}
+        info.update(counts)
+        return dict(sstate, relocated=sstate["relocated"] + counts["relocated"], added=sstate["added"] + counts["added"])
+
+    def add_noise(self, ctx, state: TrainState, it: int) -> TrainState:
+        """The step's position noise (none when noise_lr is 0)."""
+        s = self.settings
+        if s.noise_lr <= 0:
+            return state
+        key = jax.random.fold_in(jax.random.PRNGKey(self.config.seed + 1), it)
+        return mcmc_noise_jit(state, key, jnp.float32(s.noise_lr * ctx.means_lr(it - 1)))
