@@ -68,7 +68,37 @@ def test_spectrum_schedule_starts_coarse_for_smooth_images_and_ends_at_full_reso
 def test_gain_per_doubling_reads_psnr_per_doubling_of_the_count():
     assert gain_per_doubling((1000, 20.0), (2000, 20.5)) == pytest.approx(0.5)
     assert gain_per_doubling((1000, 20.0), (4000, 21.0)) == pytest.approx(0.5)
-    assert gain_per_doubling((1000, 20.0), (1020, 25.0)) is None  # the count barely moved
+    assert gain_per_doubling((1000, 20.0), (1300, 25.0)) is None  # under half a doubling: not judged
+
+
+def _growth_decisions(checks, width=100, height=100):
+    """Feed (count, val_psnr, train_scale) checks to the auto strategy's hook; the counts it froze at."""
+    from types import SimpleNamespace
+
+    from ghsplat_jax.train.strategies import make_strategy
+
+    strategy = make_strategy(TrainConfig().replace(recipe="auto"))
+    sstate, ctx, frozen = strategy.init_state(100), SimpleNamespace(width=width, height=height), []
+    for step, (count, psnr, scale) in enumerate(checks, start=1):
+        state = SimpleNamespace(num_active=lambda count=count: count)
+        sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, {"psnr": psnr, "train_scale": scale})
+        frozen += [info["growth_stopped"]] if "growth_stopped" in info else []
+    return frozen, sstate
+
+
+def test_growth_rule_ignores_reduced_resolution_and_one_dipping_check():
+    # Checks at reduced resolution never decide. The check at 14,500 dips (25.2 after 26.0): alone
+    # it would read 0.37 dB per doubling and freeze; the better of the last two reads 1.9.
+    frozen, sstate = _growth_decisions([(2000, 18.0, 4), (4000, 30.0, 2), (10000, 25.0, 1), (12500, 26.0, 1),
+                                        (14500, 25.2, 1)])
+    assert frozen == [] and bool(sstate["growing"])
+    assert int(sstate["checked_count"]) == 14500 and float(sstate["checked_psnr"]) == pytest.approx(26.0)
+    # Then a doubling that buys 0.2 dB freezes the count.
+    frozen, sstate = _growth_decisions([(10000, 25.0, 1), (20000, 26.0, 1), (40000, 26.2, 1)], width=400)
+    assert frozen == [40000] and not bool(sstate["growing"]) and int(sstate["frozen_at"]) == 750
+    # The ceiling freezes it too (0: ceiling_per_pixel x one image's pixels, 2 x 100 x 100 here).
+    frozen, _ = _growth_decisions([(10000, 20.0, 1), (20000, 23.0, 1)])
+    assert frozen == [20000]
 
 
 def test_auto_recipe_is_a_table_under_the_other_settings():

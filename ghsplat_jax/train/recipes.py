@@ -17,7 +17,7 @@ RECIPES: dict[str, dict] = {
         "strategy": {"name": "auto"},
         "val_every": 250,
         "stop_patience": 3,
-        "stop_min_gain": 0.05,
+        "stop_min_gain": 0.1,
         "stop_after": 1500,
         "res_schedule": "spectrum",
         "res_until": 2000,

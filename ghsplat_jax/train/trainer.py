@@ -195,6 +195,7 @@ class TrainingSession:
         self.rule = PlateauRule.from_config(config, full_resolution_from=self.schedule[-1][0])
         self.stop_state = PlateauRule.initial()
         self.best = None  # (state, strategy state) of the best validation check
+        self.val_pair_capacity = 0  # the checks' pair buffer (0: start from the step's)
         self.extent = float(dataset.scene_extent)
         if not (math.isfinite(self.extent) and self.extent > 0):
             raise ValueError(f"dataset {config.data}: scene extent {self.extent} is not a positive number")
@@ -304,16 +305,21 @@ class TrainingSession:
 
         lean = dataclasses.replace(self.config.raster, median=False, distortion=False, depth_normal=False)
         s, psnrs, l1s = self.state, [], []
+        # The checks keep a pair buffer of their own: while training runs at reduced resolution its
+        # buffer shrinks to fit, and a shared one would see-saw between the two sizes, compiling the
+        # step and the check's render again at every check.
+        capacity = self.val_pair_capacity or self.pair_capacity
         for v in self.val_views:
             while True:
-                rcfg = dataclasses.replace(lean, pair_capacity=self.pair_capacity, on_overflow="report")
+                rcfg = dataclasses.replace(lean, pair_capacity=capacity, on_overflow="report")
                 out = render(render_params(s.params, s.active, v.camera.world_to_cam), v.camera, rcfg)
                 if int(out.stats.overflow) <= 0:
                     break
-                self.pair_capacity = max(2 * self.pair_capacity, pair_bucket(int(out.stats.num_pairs)))
+                capacity = max(2 * capacity, pair_bucket(int(out.stats.num_pairs)))
             target = jnp.asarray(v.image)
             psnrs.append(float(psnr(out.rgb, target)))
             l1s.append(float(l1(out.rgb, target)))
+        self.val_pair_capacity = capacity
         return {"psnr": float(np.mean(psnrs)), "l1": float(np.mean(l1s)), "num_views": len(psnrs)}
 
     def check(self, step: int) -> dict:
