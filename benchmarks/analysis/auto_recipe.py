@@ -6,10 +6,14 @@ time, per scene, from the runs' own records (every number below is read from fil
 
 Reads every RUNS/SCENE/VARIANT folder whose variant starts with "auto" (metrics.json, config.toml,
 test_curve.jsonl: the test views scored while training, that time left out of the training
-seconds) and the default and compact rows of the reference results. A run interrupted before it
-finished (a test curve, no metrics.json) is listed apart, with its last scored step. Writes OUT/results.json (every
-run, the per-scene mean and spread over seeds, the goal checks, the machine record of this report
-and of each run), OUT/README.md (generated: tables) and OUT/psnr_vs_time_SCENE.png.
+seconds) and the default and compact rows of the reference results. Variants "auto" and
+"auto_seedN" are the recipe's seeds; any other "auto_X" is an ablation, compared with the same
+scene's seed-0 run. A run interrupted before it finished (a test curve, no metrics.json) is
+listed apart, with its last scored step. Runs already in OUT/results.json whose folder is gone
+are kept from there (run folders do not outlive the machine they ran on). Writes
+OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
+machine record of this report and of each run), OUT/README.md (generated: tables) and
+OUT/psnr_vs_time_SCENE.png.
 
 The goal (self-sizing issue): per scene, the auto recipe's mean test PSNR over its seeds at least
 the compact variant's, its mean count at most compact's, and each run at most 10 minutes of
@@ -32,6 +36,20 @@ from record import RESULTS, ROOT, machine_record  # noqa: E402
 from ghsplat_jax.io_utils import atomic_write, code_revision, write_json  # noqa: E402
 
 TIME_GOAL_S = 600.0
+PSNR_LEVELS = (26.0, 27.0, 28.0, 29.0, 30.0)  # the time-to-PSNR table's levels (dB)
+
+
+def is_seed(variant: str) -> bool:
+    """Whether a variant is one of the recipe's seeds ("auto", "auto_seedN"), not an ablation."""
+    return variant == "auto" or (variant.startswith("auto_seed") and variant[9:].isdigit())
+
+
+def carried_runs(previous: Path, present: list[dict]) -> list[dict]:
+    """Finished runs recorded in a previous results.json whose (scene, variant) is not among `present`."""
+    if not previous.is_file():
+        return []
+    have = {(r["scene"], r["variant"]) for r in present}
+    return [r for r in json.loads(previous.read_text()).get("runs", []) if (r["scene"], r["variant"]) not in have]
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -105,11 +123,32 @@ def time_to(curve: list[dict], level: float) -> float | None:
     return next((p["elapsed_s"] for p in curve if p["psnr"] >= level), None)
 
 
+def psnr_at(curve: list[dict], seconds: float) -> float | None:
+    """The last scored test PSNR at or before `seconds` of training (None: nothing scored by then)."""
+    return next((p["psnr"] for p in reversed(curve) if p["elapsed_s"] <= seconds), None)
+
+
+def ablations(runs: list[dict]) -> list[dict]:
+    """Each ablation run against its scene's seed-0 auto run: what leaving the part out costs."""
+    base = {r["scene"]: r for r in runs if r["variant"] == "auto"}
+    out = []
+    for r in runs:
+        b = base.get(r["scene"])
+        if is_seed(r["variant"]) or b is None:
+            continue
+        out.append({"scene": r["scene"], "variant": r["variant"], "psnr": r["psnr"],
+                    "num_gaussians": r["num_gaussians"], "train_seconds": r["train_seconds"],
+                    "delta_psnr_db": r["psnr"] - b["psnr"], "delta_seconds": r["train_seconds"] - b["train_seconds"],
+                    "count_ratio": r["num_gaussians"] / b["num_gaussians"],
+                    "same_code": r.get("code_revision") == b.get("code_revision")})
+    return out
+
+
 def summarize(runs: list[dict], refs: dict) -> list[dict]:
-    scenes = sorted({r["scene"] for r in runs})
+    scenes = sorted({r["scene"] for r in runs if is_seed(r["variant"])})
     out = []
     for scene in scenes:
-        rs = [r for r in runs if r["scene"] == scene]
+        rs = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
         compact, default = refs.get((scene, "compact")), refs.get((scene, "default"))
         s = {"scene": scene, "seeds": len(rs), "psnr": spread([r["psnr"] for r in rs]),
              "num_gaussians": spread([r["num_gaussians"] for r in rs]),
@@ -125,6 +164,9 @@ def summarize(runs: list[dict], refs: dict) -> list[dict]:
             s["time_to_compact_psnr_s"] = [time_to(r["curve"], compact["psnr"]) for r in rs]
         if default:
             s["time_to_default_psnr_s"] = [time_to(r["curve"], default["psnr"]) for r in rs]
+        s["psnr_at_10_min"] = spread([psnr_at(r["curve"], TIME_GOAL_S) for r in rs])
+        s["time_to_level_s"] = {f"{level:g}": spread([time_to(r["curve"], level) for r in rs])
+                                for level in PSNR_LEVELS}
         out.append(s)
     return out
 
@@ -162,7 +204,7 @@ def fmt(x, spec=".2f", none="-"):
     return none if x is None else format(x, spec)
 
 
-def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list[dict]) -> str:
+def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list[dict], ablated: list[dict]) -> str:
     lines = ["# The auto recipe against the default and the compact variant", "",
              "Generated by `benchmarks/analysis/auto_recipe.py` from the runs' metrics.json and test_curve.jsonl "
              "and the reference results; do not edit by hand.", "",
@@ -182,6 +224,22 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                      f"{fmt(t['std'], '.0f')} | {fmt(c.get('psnr'))} | {fmt(c.get('num_gaussians'), ',')} | "
                      f"{fmt(d.get('psnr'))} | {fmt(d.get('num_gaussians'), ',')} | {yes('psnr_at_least_compact')} | "
                      f"{yes('count_at_most_compact')} | {yes('every_run_within_10_min')} |")
+    lines += ["", "## Time to reach a test PSNR (auto: mean over the seeds that reached it, min s)", "",
+              "| scene | test PSNR at 10 min | " + " | ".join(f"{level:g} dB" for level in PSNR_LEVELS) + " |",
+              "|---|---|" + "---|" * len(PSNR_LEVELS)]
+    for s in summary:
+        cells = []
+        for level in PSNR_LEVELS:
+            t = s["time_to_level_s"][f"{level:g}"]
+            cells.append("never" if not t["n"] else f"{t['mean'] / 60:.1f} ({t['n']} of {s['seeds']})")
+        lines.append(f"| {s['scene']} | {fmt(s['psnr_at_10_min']['mean'])} | " + " | ".join(cells) + " |")
+    if ablated:
+        lines += ["", "## Ablations (each against the same scene's seed-0 auto run)", "",
+                  "| scene | variant | test PSNR | change (dB) | surfels | count x | train s | change (s) | same code |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {a['scene']} | {a['variant']} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
+                  f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
+                  f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
     lines += ["", "## Every run", "",
               "| scene | variant | seed | test PSNR | L1 | SSIM | train PSNR | surfels | train s | steps | kept step | "
               "load at the end | code | why it stopped |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -211,6 +269,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS / "auto_recipe")
     args = ap.parse_args(argv)
     runs, unfinished = auto_runs(args.runs), unfinished_runs(args.runs)
+    runs = sorted(runs + carried_runs(args.out / "results.json", runs), key=lambda r: (r["scene"], r["variant"]))
     if not runs and not unfinished:
         print(f"no auto runs under {args.runs}", file=sys.stderr)
         return 1
@@ -222,10 +281,11 @@ def main(argv=None) -> int:
         interrupted = [dict(u, label=f"{u['variant']}, interrupted at step {u['last_scored_step']} "
                                      f"({u['num_surfels_then'] or 0:,} surfels)") for u in unfinished]
         chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png")
+    ablated = ablations(runs)
     write_json(args.out / "results.json", {"report": record, "summary": summary, "runs": runs,
-                                           "unfinished": unfinished})
+                                           "ablations": ablated, "unfinished": unfinished})
     with atomic_write(args.out / "README.md", "w") as fh:
-        fh.write(readme(summary, runs, record, unfinished))
+        fh.write(readme(summary, runs, record, unfinished, ablated))
     print(f"wrote {args.out}/results.json, README.md and {len(scenes)} charts")
     return 0
 
