@@ -99,6 +99,8 @@ def test_growth_rule_ignores_reduced_resolution_and_one_dipping_check():
     # The ceiling freezes it too (0: ceiling_per_pixel x one image's pixels, 2 x 100 x 100 here).
     frozen, _ = _growth_decisions([(10000, 20.0, 1), (20000, 23.0, 1)])
     assert frozen == [20000]
+    frozen, _ = _growth_decisions([(16000, 20.0, 1), (20000, 23.0, 1)])  # even short of half a doubling
+    assert frozen == [20000]
 
 
 def test_auto_recipe_is_a_table_under_the_other_settings():

@@ -162,10 +162,10 @@ class AutoStrategy(MCMCStrategy):
         sstate = dict(sstate, last_psnr=jnp.float32(psnr))
         ref = (int(sstate["checked_count"]), float(sstate["checked_psnr"]))
         gain = gain_per_doubling(ref, now) if ref[0] else None
-        if gain is None and ref[0]:
+        at_ceiling = now[0] >= self.ceiling(ctx, sstate)
+        if gain is None and ref[0] and not at_ceiling:
             return sstate, {}  # the count has not grown enough since the reference check to judge it
         sstate = dict(sstate, checked_count=jnp.int32(now[0]), checked_psnr=jnp.float32(now[1]))
-        at_ceiling = now[0] >= self.ceiling(ctx, sstate)
         if (gain is not None and gain < self.settings.min_gain_db) or at_ceiling:
             why = (f"the ceiling of {self.ceiling(ctx, sstate)}" if at_ceiling else
                    f"{gain:.2f} dB of validation PSNR per doubling (under {self.settings.min_gain_db})")
