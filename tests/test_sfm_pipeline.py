@@ -67,6 +67,10 @@ def test_fern_registers_all_and_reports_partial_runs(tmp_path, capsys):
     assert code == 3  # 20 of 22 is below 0.95
     assert "Registered 20 of 22" in captured.out
     assert "zz_noise_a.png" in captured.out and "--matching sequential" in captured.out
+    # the refusal says why: pycolmap could not read the two noise images
+    assert "Likely cause:\n  - unreadable: pycolmap could not read 2 photos (zz_noise_a.png, zz_noise_b.png)" \
+        in captured.err
+    assert "Why so few images registered:" in captured.out
 
     report = json.loads((out / "sfm_report.json").read_text())
     _no_nans(report)
@@ -139,6 +143,9 @@ def test_unmatchable_images_fail_plainly(tmp_path, capsys):
     assert report["status"] == "failed" and report["num_registered"] == 0
     assert report["unregistered_images"] == ["noise_0.png", "noise_1.png", "noise_2.png", "truncated.png"]
     assert report["unreadable_images"] == ["truncated.png"]
+    assert [d["cause"] for d in report["diagnosis"]] == ["unreadable", "too few matches"]
+    assert report["diagnosis"][0]["images"] == ["truncated.png"]
+    assert report["diagnosis"][1]["detail"] == "no two photos share a verified match"
     assert not stale.exists()
     assert report["advice"]
     assert "Registered 0 of 4" in capsys.readouterr().out

@@ -173,7 +173,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"Report: {Path(args.out) / 'sfm_report.json'}")
     code, message = verdict(report["status"], report.get("fold_diagnostics", {}).get("reasons", []),
                             report.get("num_registered", 0), report["num_images"], options.min_registered_fraction,
-                            args.out)
+                            args.out, report.get("diagnosis"))
     if message:
         print(message, file=sys.stderr)
     return code

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.sfm import pipeline
+from ghsplat_jax.sfm import diagnose, pipeline
 from ghsplat_jax.sfm.align import camera_centres
 from ghsplat_jax.sfm.evaluate import compare_poses, model_w2c
 
@@ -84,7 +84,8 @@ def run_method(method: str, base_db: Path, root: Path, names: list[str], work: P
            "registered": 0 if best is None else best.num_reg_images(), "num_images": len(names),
            "disambiguation": result.disambiguation}
     if best is None:
-        row.update(status="failed", fold_suspected=False)
+        row.update(status="failed", fold_suspected=False,
+                   diagnosis=diagnose.diagnose_run(database, names, None, refused=True))
         return row
     row["fold_suspected"] = diag["fold_suspected"]
     row["fold_reasons"] = diag["reasons"]
@@ -96,6 +97,8 @@ def run_method(method: str, base_db: Path, root: Path, names: list[str], work: P
         row["status"] = "partial"
     else:
         row["status"] = "ok"
+    if row["status"] == "partial" or row["registered"] < len(names):
+        row["diagnosis"] = diagnose.diagnose_run(database, names, best, refused=row["status"] == "partial")
     row.update(evaluate(best, truth))
     return row
 

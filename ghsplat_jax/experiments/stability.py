@@ -98,12 +98,15 @@ def _sfm_row(case: dict, r: dict, source: str) -> dict:
     from ghsplat_jax.sfm.report import verdict
 
     rmse = r.get("centre_rmse_pct")
-    code, message = verdict(r["status"], r.get("fold_reasons", []), r["registered"], r["views"], 0.9, "OUT")
+    diagnosis = r.get("diagnosis") or []
+    code, message = verdict(r["status"], r.get("fold_reasons", []), r["registered"], r["views"], 0.9, "OUT",
+                            diagnosis)
     ok = r["status"] == "ok" and rmse is not None and rmse <= SFM_GOAL_PCT
     if r["status"] == "folded":
         detection = "fold check: status folded, exit 4"
     elif r["status"] in ("partial", "failed"):
-        detection = f"registered-fraction check (< 0.9): status {r['status']}, exit 3"
+        detection = f"registered-fraction check (< 0.9): status {r['status']}, exit 3" + (
+            f"; diagnosed: {', '.join(dict.fromkeys(d['cause'] for d in diagnosis))}" if diagnosis else "")
     elif ok:
         detection = "none needed: status ok, exit 0"
     else:
@@ -116,7 +119,8 @@ def _sfm_row(case: dict, r: dict, source: str) -> dict:
     return _row(case, f"--disambiguate {r['method']}", ok, error, detection, message, source,
                 status=r["status"], exit_code=code, registered=r["registered"], views=r["views"],
                 centre_rmse_pct=rmse, rotation_max_deg=r.get("rotation_max_deg"),
-                image_size=r.get("image_size"), seconds=r.get("total_s"))
+                image_size=r.get("image_size"), seconds=r.get("total_s"),
+                causes=[d["cause"] for d in diagnosis])
 
 
 def _recorded(ctx) -> Path:

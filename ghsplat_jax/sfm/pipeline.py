@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
-from ghsplat_jax.sfm import crosscheck, folds
+from ghsplat_jax.sfm import crosscheck, diagnose, folds
 from ghsplat_jax.sfm import disambiguate as dis
 from ghsplat_jax.sfm import frames as frames_mod
 from ghsplat_jax.sfm.align import AlignOptions, estimate_alignment
@@ -592,6 +592,12 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
                 report["cross_check"] = crosscheck.check_and_drop(best, options.cross_check_options,
                                                                   num_threads=options.num_threads)
         report.update(_registration(models, best, names))
+        refused = best is None or report["registered_fraction"] < options.min_registered_fraction
+        if refused or report["unregistered_images"]:
+            with _timed(timings, "diagnosis"):
+                report["diagnosis"] = diagnose.diagnose_run(
+                    database, names, best, refused, ordered=options.capture_order == "name",
+                    dropped=_dropped_why(report))
         model_dir = distorted / "sparse" / "0"
         if best is None:  # leave no earlier run's model beside a report that says "failed"
             for stale in (out / "images", out / "sparse" / "0", model_dir):
@@ -638,6 +644,14 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
     report["timings_s"] = timings
     write_json(out / "sfm_report.json", report)
     return report
+
+
+def _dropped_why(report: dict) -> dict[str, str]:
+    """Images registered, then left out by a check: {name: which check}."""
+    why = {name: "mis-registered (a spike off the camera path)" for name in report.get("dropped_spikes", [])}
+    for name in report.get("cross_check", {}).get("dropped", []):
+        why[name] = "landed elsewhere when re-localised with itself left out (cross-check)"
+    return why
 
 
 def _registration(models: dict, best, names: list[str]) -> dict:

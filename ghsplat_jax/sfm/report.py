@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from ghsplat_jax.sfm import diagnose
+
 # `ghsplat sfm` exit status by outcome (verdict)
 EXIT_BAD_INPUT = 1
 EXIT_TOO_FEW_REGISTERED = 3
@@ -131,6 +133,10 @@ def summary_text(report: dict) -> str:
         lines.append(f"Aligned: up from {alignment['up_source']}, row from {alignment['row_source']}, "
                      f"row end by {alignment['sign_rule']}, scale {alignment['scale']:.4g} "
                      f"({alignment['scale_source']}).")
+    if report.get("diagnosis"):
+        lines.append("Why " + ("so few images registered:" if report.get("status") in ("partial", "failed")
+                               else "some images were not registered:"))
+        lines.extend(f"  - {line}" for line in diagnose.lines(report["diagnosis"]))
     if report.get("advice"):
         lines.append("What to try:")
         lines.extend(f"  - {tip}" for tip in report["advice"])
@@ -167,12 +173,17 @@ def _fold_lines(report: dict) -> list[str]:
 
 
 def verdict(status: str, fold_reasons: list[str], registered: int, num_images: int, needed: float,
-            out) -> tuple[int, str | None]:
-    """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status."""
+            out, diagnosis: list[dict] | None = None) -> tuple[int, str | None]:
+    """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status; a
+    refusal for too few registered images names the likely causes (`diagnosis`, diagnose.py)."""
     if status == "ok":
         return 0, None
     if status == "folded":
         return EXIT_FOLDED, (f"ghsplat sfm: the model looks folded ({'; '.join(fold_reasons)}); it is in {out} for "
                              "inspection only: do not train on it (--no-fold-check to accept it)")
-    return EXIT_TOO_FEW_REGISTERED, (f"ghsplat sfm: only {registered} of {num_images} images registered "
-                                     f"(below --min-registered-fraction {needed})")
+    message = (f"ghsplat sfm: only {registered} of {num_images} images registered "
+               f"(below --min-registered-fraction {needed})")
+    if diagnosis:
+        message += "\nLikely cause" + ("s" if len(diagnosis) > 1 else "") + ":\n" + "\n".join(
+            f"  - {line}" for line in diagnose.lines(diagnosis))
+    return EXIT_TOO_FEW_REGISTERED, message
