@@ -3,6 +3,7 @@ time, per scene, from the runs' own records (every number below is read from fil
 
     python benchmarks/analysis/auto_recipe.py --runs runs/table1_greenhouse \
         --reference benchmarks/results/table1_greenhouse/results.json --out benchmarks/results/auto_recipe
+    python benchmarks/analysis/auto_recipe.py --check    # OUT/README.md against OUT/results.json
 
 Reads every RUNS/SCENE/VARIANT folder whose variant starts with "auto" (metrics.json, config.toml,
 test_curve.jsonl: the test views scored while training, that time left out of the training
@@ -13,7 +14,8 @@ listed apart, with its last scored step. Runs already in OUT/results.json whose 
 are kept from there (run folders do not outlive the machine they ran on). Writes
 OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
 machine record of this report and of each run), OUT/README.md (generated: tables) and
-OUT/psnr_vs_time_SCENE.png.
+OUT/psnr_vs_time_SCENE.png. --check needs no run folders: it renders the README from the
+committed OUT/results.json and exits 1 with a diff when OUT/README.md differs (no JAX import).
 
 The goal (self-sizing issue): per scene, the auto recipe's mean test PSNR over its seeds at least
 the compact variant's, its mean count at most compact's, and each run at most 10 minutes of
@@ -24,16 +26,15 @@ shown as they were recorded, with the device, not as a same-machine comparison.
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import statistics
 import sys
 import tomllib
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/
-from record import RESULTS, ROOT, machine_record  # noqa: E402
-
-from ghsplat_jax.io_utils import atomic_write, code_revision, write_json  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "benchmarks" / "results"
 
 TIME_GOAL_S = 600.0
 PSNR_LEVELS = (26.0, 27.0, 28.0, 29.0, 30.0)  # the time-to-PSNR table's levels (dB)
@@ -262,12 +263,45 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     return "\n".join(lines)
 
 
+def readme_from_results(out: Path = RESULTS / "auto_recipe") -> str:
+    """OUT/README.md's text rendered from the committed OUT/results.json (no run folders)."""
+    res = json.loads((out / "results.json").read_text())
+    return readme(res["summary"], res["runs"], res["report"], res.get("unfinished", []), res.get("ablations", []))
+
+
+def check(out: Path = RESULTS / "auto_recipe", readme_path: Path | None = None) -> str:
+    """'' when the README is what OUT/results.json gives, else a unified diff (committed -> generated)."""
+    readme_path = readme_path or out / "README.md"
+    want = readme_from_results(out)
+    have = readme_path.read_text() if readme_path.is_file() else ""
+    if want == have:
+        return ""
+    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
+                                        f"{readme_path} (committed)", f"{readme_path} (generated)"))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=Path, default=ROOT / "runs" / "table1_greenhouse")
     ap.add_argument("--reference", type=Path, default=RESULTS / "table1_greenhouse" / "results.json")
     ap.add_argument("--out", type=Path, default=RESULTS / "auto_recipe")
+    ap.add_argument("--check", action="store_true",
+                    help="write nothing: exit 1 with a diff if OUT/README.md differs from OUT/results.json's")
     args = ap.parse_args(argv)
+    if args.check:
+        diff = check(args.out)
+        if diff:
+            sys.stdout.write(diff)
+            print(f"\n{args.out / 'README.md'} differs from what auto_recipe.py renders from results.json",
+                  file=sys.stderr)
+            return 1
+        print(f"{args.out / 'README.md'}: up to date")
+        return 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))  # record.py
+    from record import machine_record
+
+    from ghsplat_jax.io_utils import atomic_write, code_revision, write_json
+
     runs, unfinished = auto_runs(args.runs), unfinished_runs(args.runs)
     runs = sorted(runs + carried_runs(args.out / "results.json", runs), key=lambda r: (r["scene"], r["variant"]))
     if not runs and not unfinished:

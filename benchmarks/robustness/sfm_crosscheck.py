@@ -13,7 +13,8 @@ Photos are rendered once into WORK/case/photos and kept. Every run is `run_sfm` 
 `ghsplat sfm --max-size 384` runs it; the model is scored with compare_model_dirs, and the
 cross-check's flagged views with their true errors in the earlier model. Appends to
 benchmarks/results/sfm_crosscheck/results.json (one entry per case and variant, latest
-kept) and rewrites README.md's table.
+kept) and rewrites README.md's table. `--check` runs nothing: it renders README.md from the
+committed results.json and exits 1 with a diff when they differ.
 """
 
 from __future__ import annotations
@@ -121,8 +122,8 @@ def run(case: str, photos: Path, out: Path, variant: str) -> dict:
     }
 
 
-def write(rows: list[dict]) -> None:
-    write_json(RESULTS / "results.json", {"machine": machine_record(), "git_revision": code_revision(), "rows": rows})
+def readme_text(rows: list[dict], revision: str) -> str:
+    """README.md's text: the table of `rows` (results.json's) made at code revision `revision`."""
     table = []
     for r in rows:
         flagged = r["cross_check_dropped"]
@@ -135,17 +136,43 @@ def write(rows: list[dict]) -> None:
     heads = ("case", "checks", "status", "registered", "photos", "max centre error % extent", "max rotation error deg",
              "chain drift / bound deg", "cross-check dropped (true error in the earlier model)", "cross-check s",
              "SfM s")
+    return ("# SfM checks against the exact cameras: rotation-chain bound and leave-one-out cross-check\n\n"
+            "Made by `benchmarks/robustness/sfm_crosscheck.py` from results.json; do not edit by hand. `before`: the fixed 30-degree rotation-chain bound and "
+            "no cross-check; `after`: the bound scaled with the chain's own link errors and every view "
+            "re-localised with itself left out (views landing more than 0.3% of the extent or 0.6 degrees "
+            "away are dropped). Errors are of the kept views against the generator's exact cameras "
+            "(similarity-aligned), % of the extent. Row segments: 60 photos of 384x288 round one end of "
+            "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
+            "(`--capture orbit`, `--align none`); -mt: all CPU threads.\n\n"
+            f"Git revision {revision}; machine in results.json. What each run shows, and the "
+            "models checked offline: NOTES.md.\n\n" + markdown_table(table, cols, heads))
+
+
+def readme_from_results(results: Path = RESULTS) -> str:
+    """README.md's text rendered from the committed results.json (no run folders)."""
+    import json
+
+    res = json.loads((results / "results.json").read_text())
+    return readme_text(res["rows"], res["git_revision"])
+
+
+def check(results: Path = RESULTS) -> str:
+    """'' when README.md is what results.json gives, else a unified diff (committed -> generated)."""
+    import difflib
+
+    readme = results / "README.md"
+    want, have = readme_from_results(results), readme.read_text() if readme.is_file() else ""
+    if want == have:
+        return ""
+    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
+                                        f"{readme} (committed)", f"{readme} (generated)"))
+
+
+def write(rows: list[dict]) -> None:
+    revision = code_revision()
+    write_json(RESULTS / "results.json", {"machine": machine_record(), "git_revision": revision, "rows": rows})
     with atomic_write(RESULTS / "README.md", "w") as fh:
-        fh.write("# SfM checks against the exact cameras: rotation-chain bound and leave-one-out cross-check\n\n"
-                 "Made by `benchmarks/robustness/sfm_crosscheck.py`. `before`: the fixed 30-degree rotation-chain bound and "
-                 "no cross-check; `after`: the bound scaled with the chain's own link errors and every view "
-                 "re-localised with itself left out (views landing more than 0.3% of the extent or 0.6 degrees "
-                 "away are dropped). Errors are of the kept views against the generator's exact cameras "
-                 "(similarity-aligned), % of the extent. Row segments: 60 photos of 384x288 round one end of "
-                 "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
-                 "(`--capture orbit`, `--align none`); -mt: all CPU threads.\n\n"
-                 f"Git revision {code_revision()}; machine in results.json. What each run shows, and the "
-                 "models checked offline: NOTES.md.\n\n" + markdown_table(table, cols, heads))
+        fh.write(readme_text(rows, revision))
 
 
 def main(argv=None) -> int:
@@ -155,7 +182,17 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["row3_x0", "row3_x1", "orbit72"])
     ap.add_argument("--variants", nargs="+", default=["before", "after"], choices=["before", "after"])
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "sfm_crosscheck")
+    ap.add_argument("--check", action="store_true",
+                    help="run nothing: exit 1 with a diff if README.md differs from what results.json gives")
     args = ap.parse_args(argv)
+    if args.check:
+        diff = check()
+        if diff:
+            sys.stdout.write(diff)
+            print(f"\n{RESULTS / 'README.md'} differs from what results.json gives", file=sys.stderr)
+            return 1
+        print(f"{RESULTS / 'README.md'}: up to date")
+        return 0
     old = RESULTS / "results.json"
     rows = json.loads(old.read_text())["rows"] if old.is_file() else []
     for case in args.cases:

@@ -1,0 +1,476 @@
+"""Write benchmarks/results/table1_greenhouse/README.md from the committed results files: every
+number in it is computed here from results.json, segments.json, table1.md (the paper's ranges),
+pareto.json, device_h200_sharing.json, ../fusion_profile_step.json, the runs' progress records
+(../table1_greenhouse_*_progress.json) and notes.json (the facts no results file records).
+
+    python benchmarks/analysis/table1_readme.py            # rewrite README.md
+    python benchmarks/analysis/table1_readme.py --check    # exit 1 with a diff if README.md differs
+
+Statistics: the rank correlation is Spearman's rho with an exact two-sided permutation p-value
+(every ordering of the gains), so no statistics package is needed. Imports no JAX unless writing
+(ghsplat_jax.io_utils.atomic_write), so the check is quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import itertools
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "benchmarks" / "results"
+NAME = "table1_greenhouse"
+SCRIPT = "benchmarks/analysis/table1_readme.py"
+
+
+# ---------------------------------------------------------------- reading
+
+
+def load(results: Path = RESULTS) -> dict:
+    """Every file the README is made from, parsed."""
+    folder = results / NAME
+    read = lambda p: json.loads(p.read_text())  # noqa: E731
+    progress = {}
+    for path in sorted(results.glob(f"{NAME}_*_progress.json")):
+        progress[path.name] = read(path)
+    paper = re.search(r"paper[^:]*: L1 ([\d.]+)-([\d.]+), PSNR ([\d.]+)-([\d.]+) dB, ([\d,]+)-([\d,]+) Gaussians",
+                      (folder / "table1.md").read_text())
+    if paper is None:
+        raise ValueError(f"{folder / 'table1.md'}: no line with the paper's ranges")
+    p = paper.groups()
+    return {
+        "results": read(folder / "results.json"),
+        "segments": read(folder / "segments.json"),
+        "notes": read(folder / "notes.json"),
+        "pareto": read(folder / "pareto.json"),
+        "sharing": read(folder / "device_h200_sharing.json"),
+        "profile": read(results / "fusion_profile_step.json"),
+        "progress": progress,
+        "compact_configs": sorted(p.name.split("_compact")[0] for p in folder.glob("*_compact_config.toml")),
+        "paper": {"l1": (float(p[0]), float(p[1])), "psnr": (float(p[2]), float(p[3])),
+                  "num_gaussians": (int(p[4].replace(",", "")), int(p[5].replace(",", "")))},
+    }
+
+
+def run_progress(data: dict, row: dict) -> tuple[str, dict] | tuple[None, None]:
+    """The progress record of the run in the table: same run folder and final count."""
+    for name, p in data["progress"].items():
+        if p.get("run") == row["run_dir"] and p.get("surfels") == row["num_gaussians"] and p.get("finished"):
+            return name, p
+    return None, None
+
+
+def train_metrics(data: dict, row: dict) -> dict | None:
+    """The training-view metrics of the run in the table, or None when no file records them (its
+    progress record must carry the same test PSNR as results.json, so it is the same evaluation)."""
+    _, p = run_progress(data, row)
+    m = (p or {}).get("metrics") or {}
+    if m.get("train") and m.get("test", {}).get("psnr") == row["psnr"]:
+        return m["train"]
+    return None
+
+
+def spearman(a: list[float], b: list[float]) -> tuple[float, float]:
+    """Spearman's rho (no ties) and its exact two-sided permutation p-value."""
+    def ranks(x):
+        order = sorted(range(len(x)), key=x.__getitem__)
+        r = [0] * len(x)
+        for k, i in enumerate(order):
+            r[i] = k
+        return r
+
+    n, ra = len(a), ranks(a)
+    rho = lambda rb: 1 - 6 * sum((p - q) ** 2 for p, q in zip(ra, rb)) / (n * (n * n - 1))  # noqa: E731
+    observed = rho(ranks(b))
+    perms = list(itertools.permutations(range(n)))
+    extreme = sum(abs(rho(p)) >= abs(observed) - 1e-12 for p in perms)
+    return observed, extreme / len(perms)
+
+
+# ---------------------------------------------------------------- formatting
+
+
+def rng(values, spec: str, sep: str = "-") -> str:
+    lo, hi = format(min(values), spec), format(max(values), spec)
+    return lo if lo == hi else f"{lo}{sep}{hi}"
+
+
+def k(n: int) -> str:
+    return f"{n / 1000:.0f}k"
+
+
+def table(heads: list[str], rows: list[list]) -> list[str]:
+    return ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)] + [
+        "| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+
+
+def names(xs: list[str]) -> str:
+    return xs[0] if len(xs) == 1 else ", ".join(xs[:-1]) + " and " + xs[-1]
+
+
+def signed(x: float, spec: str) -> str:
+    s = format(x, spec)
+    return s if s.startswith("-") else "+" + s
+
+
+# ---------------------------------------------------------------- the README
+
+
+def render(data: dict) -> str:
+    rows = data["results"]["rows"]
+    notes = data["notes"]
+    by = {(r["scene"], r["variant"]): r for r in rows}
+    finished = [r for r in rows if r.get("psnr") is not None and r["steps"] == max(x["steps"] for x in rows)]
+    segs = sorted({r["scene"] for r in finished})
+    both = [s for s in segs if (s, "default") in by and (s, "compact") in by]
+    d = {s: by[s, "default"] for s in both}
+    c = {s: by[s, "compact"] for s in both}
+    steps = max(r["steps"] for r in finished)
+    cap = data["segments"]["capture"]
+    seginfo = {s["segment"]: s for s in data["segments"]["segments"]}
+    down = {p["downscale"] for p in data["progress"].values()}
+    (downscale,) = down
+    w, h = int(cap["width"] / downscale), int(cap["height"] / downscale)
+    gpu_rows = [r for r in finished if r.get("device") not in (None, "cpu")]
+    gpu_seg = gpu_rows[0]["scene"] if len(gpu_rows) == 1 and gpu_rows[0]["variant"] == "default" else None
+    gpu_name = gpu_rows[0]["device"] if gpu_rows else None
+    gpu_short = gpu_name.replace("NVIDIA ", "") if gpu_name else None
+    train = {(r["scene"], r["variant"]): train_metrics(data, r) for r in finished}
+    out = ["# Table 1 on a greenhouse: where the runs stand", "",
+           f"Generated by `{SCRIPT}` from the committed results files; do not edit by hand (numbers are computed "
+           "from the results files; the facts no results file records are in `notes.json`). "
+           "`notebooks/results.ipynb` draws these results (tables, fronts, curves) from the same files.", "",
+           f"`experiments/{NAME}.toml`: a procedural four-row cucumber greenhouse, both ends of every row "
+           f"photographed hand-held ({len(seginfo)} segments, {cap['views']} photos of {cap['width']}x{cap['height']} "
+           f"each), SfM on each segment (`segments.md`), then 2DGS training at {w}x{h} (downscale {downscale:g}) for "
+           f"{steps:,} steps. Everything was measured on one 2-core CPU"
+           + (f", except {gpu_seg}'s default run, which trained on a lent {gpu_short} (below)." if gpu_seg else "."),
+           ""]
+
+    # -------- Table of finished runs
+    all_done = len(both) == len(seginfo)
+    out += [f"## Finished: both variants of {'all ' if all_done else ''}{len(both)} segments", ""]
+    label = {"default": "default (the Table 1 protocol)", "compact": "compact (mcmc, a fifth of the count)"}
+    trs = []
+    for s in both:
+        for v in ("default", "compact"):
+            r = by[s, v]
+            lab = label[v] if r.get("device") in (None, "cpu") else label[v][:-1] + f"; trained on an {gpu_short})"
+            t = train[s, v]
+            trs.append([s, lab, f"{r['steps']:,}", f"{r['psnr']:.2f}", f"{r['l1']:.4f}", f"{r['ssim']:.3f}",
+                        f"{r['num_gaussians']:,}", "not recorded" if t is None else f"{t['psnr']:.2f}"])
+    out += table(["segment", "variant", "steps", "test PSNR (dB)", "test L1", "test SSIM", "Gaussians",
+                  "train PSNR (dB)"], trs)
+    missing_train = sorted({s for (s, v), t in train.items() if t is None and s in both})
+    out.append("")
+
+    # held-out split: every 8th registered view (cross-checked with the recorded view counts)
+    n_test = {s: len(range(0, seginfo[s]["registered"], 8)) for s in both}
+    n_train = {s: seginfo[s]["registered"] - n_test[s] for s in both}
+    for (s, _), t in train.items():
+        if t is not None and t.get("num_views") not in (None, n_train[s]):
+            raise ValueError(f"{s}: {t['num_views']} training views recorded, {n_train[s]} expected")
+
+    def groups(counts):
+        vals = sorted(set(counts.values()))
+        return vals, {v: [s for s in both if counts[s] == v] for v in vals}
+
+    tv, tg = groups(n_test)
+    test_txt = ", ".join(f"{v} for {names(tg[v])}" for v in tv[:-1]) + f", {tv[-1]} for the others" \
+        if len(tv) > 1 else f"{tv[0]} for each"
+    rv, rgp = groups(n_train)
+    train_txt = ", ".join(f"{v} for {names(rgp[v])}" for v in rv)
+    out.append(f"- **Evaluation.** Test metrics are means over the segment's held-out views (every 8th registered "
+               f"photo: {test_txt}); the models trained on the other registered views ({train_txt}). "
+               "`table1.md` has the paper's layout and `results.md` every column."
+               + (f" The training-view PSNR of {names(missing_train)} is not recorded: its run folders are gone "
+                  "and no progress record carries its final evaluation." if missing_train else ""))
+
+    # -------- compact against default
+    gap = {s: train[s, "default"]["psnr"] - d[s]["psnr"] for s in both if train[s, "default"] is not None}
+    gain = {s: c[s]["psnr"] - d[s]["psnr"] for s in both}
+    dl1 = {s: c[s]["l1"] - d[s]["l1"] for s in both}
+    dssim = {s: c[s]["ssim"] - d[s]["ssim"] for s in both}
+    higher = [s for s in both if gain[s] > 0]
+    within = [s for s in both if gain[s] >= -0.2]
+    worse_l1 = [s for s in both if round(dl1[s], 4) > 0]
+    worse_ssim = [s for s in both if round(dssim[s], 3) < 0]
+    frac = {s: c[s]["num_gaussians"] / d[s]["num_gaussians"] for s in both}
+    n_all = "all " + str(len(both)) if len(higher) == len(both) else f"{len(higher)} of {len(both)}"
+    sent = [f"- **Compact against default, segment by segment.** The default over-fits: it fits its training views "
+            f"{rng(gap.values(), '.0f')} dB better than the held-out ones"
+            + (f" (on the {len(gap)} segments whose training PSNR is recorded)" if len(gap) < len(both) else "")
+            + f". At {rng(frac.values(), '.1%')} of the surfels, the compact variant's held-out PSNR is higher on "
+            f"{n_all} segments"]
+    sent.append(", so every one meets the compactness goal (within 0.2 dB of the default at a fifth of the count)."
+                if len(within) == len(both) else f"; {len(within)} meet the compactness goal (within 0.2 dB of the "
+                "default at a fifth of the count).")
+    if worse_l1:
+        sent.append(f" Its L1 is slightly worse on {len(worse_l1)} ({names(worse_l1)}, by "
+                    f"{rng([dl1[s] for s in worse_l1], '.4f')})")
+    if worse_ssim:
+        sent.append(f" and its SSIM on {len(worse_ssim)} ({names(worse_ssim)}, by "
+                    f"{rng([-dssim[s] for s in worse_ssim], '.3f')})")
+    sent.append(". The table below holds only these differences, each computed from the unrounded values in "
+                "`results.json` (and the progress records) and then rounded, so a difference can differ by 0.01 "
+                "from one taken between the rounded numbers above.")
+    out.append("".join(sent))
+    out.append("")
+    out += table(["segment", "default: training minus held-out PSNR (dB)", "compact gain in held-out PSNR (dB)",
+                  "compact minus default L1", "compact minus default SSIM"],
+                 [[s + (f" (default on an {gpu_short})" if s == gpu_seg else ""),
+                   "not recorded" if s not in gap else f"{gap[s]:.2f}", signed(gain[s], ".2f"),
+                   signed(dl1[s], ".4f"), signed(dssim[s], ".3f")] for s in both])
+    out.append("")
+
+    # -------- rank correlation
+    corr = [s for s in both if s in gap]
+    rho, p = spearman([gap[s] for s in corr], [gain[s] for s in corr])
+    left = [s for s in both if s not in gap]
+    verdict = ("no finding. The gain is positive everywhere; these points do not show that its size follows the "
+               "default's over-fit." if p >= 0.05 else "the gain grows with the default's over-fit at the 5% level.")
+    out.append(f"- **Does the gain grow with over-fitting?** Spearman's rank correlation between the default's gap "
+               f"and the compact gain over the {len(corr)} segments whose gap is recorded"
+               + (f" ({names(left)}'s is not)" if left else "")
+               + f" is **{rho:.2f} (exact two-sided permutation p = {p:.2f})**: {verdict}")
+
+    # -------- paper
+    def span(rs, key, spec):
+        return rng([r[key] for r in rs], spec)
+    pp = data["paper"]
+    out.append(f"- **Compared with the paper.** Here the defaults gave L1 {span(d.values(), 'l1', '.4f')}, PSNR "
+               f"{span(d.values(), 'psnr', '.2f')} dB and {span(d.values(), 'num_gaussians', ',')} Gaussians; the "
+               f"compact runs L1 {span(c.values(), 'l1', '.4f')}, PSNR {span(c.values(), 'psnr', '.2f')} dB and "
+               f"{span(c.values(), 'num_gaussians', ',')} Gaussians. The paper's 8 real segments gave L1 "
+               f"{pp['l1'][0]}-{pp['l1'][1]}, PSNR {pp['psnr'][0]}-{pp['psnr'][1]} dB and "
+               f"{k(pp['num_gaussians'][0])}-{k(pp['num_gaussians'][1])} Gaussians, at full photo resolution. "
+               f"These are procedural segments at {w}x{h}: the numbers sit side by side, and they are not a "
+               "like-for-like comparison.")
+    out.append("")
+
+    # -------- training time
+    sharing = data["sharing"]
+    pauses = [e["t"] for e in sharing["status"]["events"] if e["event"].startswith("paused")]
+    shared_until = max(pauses)
+    cond = {}
+    for s in both:
+        for v in ("default", "compact"):
+            r, n = by[s, v], notes["conditions"].get(f"{s}/{v}", {})
+            text = n.get("text", "conditions not recorded")
+            if r.get("device") not in (None, "cpu"):
+                text = f"on an {r['device']}; the first {shared_until:.0f} s shared with {len(pauses)} other runs"
+            _, prog = run_progress(data, r)
+            st = (prog or {}).get("stalls")
+            if n.get("estimate_without_stalls") and st:
+                text += (f"; about {(prog['elapsed_s'] - st['seconds']) / 3600:.1f} h without its "
+                         f"{st['seconds']:,.0f} s of stalls")
+            cond[s, v] = text
+
+    def window_range(r):
+        _, prog = run_progress(data, r)
+        if prog is None:
+            return "-"
+        ws = [x["median_seconds_per_step"] for x in prog["windows"].values() if x["surfels"] == prog["surfels"]]
+        spec = ".3f"
+        return rng(ws, spec) if ws else "-"
+
+    out += ["## Training time", "",
+            "Wall seconds and the median step time are `results.json`'s; the step time at the full count is the "
+            "range of the median step times of the 100-step windows the progress record took once the count had "
+            "reached its final value; how the machine was shared is from `notes.json`.", ""]
+    tt = []
+    for s in both:
+        cells = [s]
+        for v in ("default", "compact"):
+            r = by[s, v]
+            wall = f"{r['train_seconds']:,.0f} ({cond[s, v]})"
+            cells += ["**" + wall + "**" if notes["conditions"].get(f"{s}/{v}", {}).get("text", "").endswith(
+                "measured whole") or r.get("device") not in (None, "cpu") else wall,
+                      f"{r['step_seconds']:.3f}", window_range(r)]
+        tt.append(cells)
+    out += table(["segment", "default: training wall s", "default: median s a step", "default: s a step at the "
+                  "full count", "compact: training wall s", "compact: median s a step",
+                  "compact: s a step at the full count"], tt)
+    out.append("")
+
+    alone = lambda v: [by[s, v]["train_seconds"] for s in both  # noqa: E731
+                       if notes["conditions"].get(f"{s}/{v}", {}).get("alone") and by[s, v].get("device") in (None, "cpu")]
+    last_change = []
+    for s in both:
+        _, prog = run_progress(data, d[s])
+        if prog:
+            cs, st = prog["curve"]["surfels"], prog["curve"]["step"]
+            last_change.append(max(st[i] for i in range(1, len(cs)) if cs[i] != cs[i - 1]))
+    out.append(f"- A default segment takes about {rng([x / 3600 for x in alone('default')], '.1f')} h of this 2-core "
+               f"CPU alone, a compact one {rng([x / 60 for x in alone('compact')], '.0f')} min (the runs marked alone "
+               f"above). The surfel count, not the pixel count, sets the step time: 2DGS's densification reaches "
+               f"{rng([k(r['num_gaussians']) for r in d.values()], 's')} surfels at {w}x{h}, and the count stops "
+               f"changing by step {max(last_change):,} in every default's progress curve.")
+    share = notes["concurrency"]["machine_share"]
+    out.append(f"- Two segments trained at once buy nothing on two cores: each run's share of its own alone speed "
+               f"adds up to {share[0]:.2f}-{share[1]:.2f} of the machine (45 s windows, row0_x0 and row0_x1 alone and "
+               "together, twice), so segments run one after another.")
+    key = next(k_ for k_ in data["profile"] if k_.startswith("t1_row1_x1_final"))
+    prof = data["profile"][key]
+    thr = prof["thread_ms_per_step"]
+    by_file = prof["rest_of_step_ms_by_file"]
+    sorts = sum(op["ms_per_step"] for op in prof["top_ops"] if op["region"] == "rest of the step"
+                and any("sort" in src for src in op["source"]) and op["op"].startswith("pure_callback"))
+    prof_seg = prof["run"].split("/")[-2]
+    out.append(f"- Profiled from {prof_seg}'s final checkpoint (one program, {prof['steps']} steps; "
+               f"`../fusion_profile_step.json`, window `{key}`): {prof['step_wall_s'] * 1000:.0f} ms a step, and "
+               f"{thr['rest of the step']:.0f} ms of its {sum(thr.values()):.0f} ms of op thread time lie outside the "
+               f"compositor's loops (binning {by_file['binning.py']:.0f} ms, of which the two sorts {sorts:.0f}; "
+               f"projection {by_file['project.py']:.0f}; SH colour {by_file['sh.py']:.0f}; Adam and the rest of the "
+               f"update {by_file['step.py'] + by_file['transform.py']:.0f}): at this count per-surfel work, not the "
+               "pixels, sets the step.")
+    first_pause = min(pauses)
+    runs = sharing["runs"]
+    shared_rates = [x["steps_per_s"] for ws in runs.values() for x in ws if x["to_s"] <= first_pause]
+    gpu_run = next(r for r in sharing["status"]["runs"] if r["finished"])["run"]
+    alone_rates = sorted(x["steps_per_s"] for x in runs[gpu_run] if x["from_s"] >= shared_until)
+    med = lambda xs: (sorted(xs)[(len(xs) - 1) // 2] + sorted(xs)[len(xs) // 2]) / 2  # noqa: E731
+    per_run_shared = [med([x["steps_per_s"] for x in ws if x["to_s"] <= first_pause]) for ws in runs.values()]
+    out.append(f"- On a GPU, `ghsplat bench device_table1 --preset gpu` trains segments with the surfel pool, pair "
+               f"buffer and batches sized up front (the result does not depend on these sizes). {len(runs)} runs "
+               f"sharing one {gpu_short} went {rng(shared_rates, '.0f')} steps/s each (30 s windows before the first "
+               f"pause), about {sum(per_run_shared) / med(alone_rates):.1f}x one run alone in total "
+               f"(`device_h200_sharing.json`); a run alone went a median {med(alone_rates):.0f} steps/s "
+               f"({rng(alone_rates, '.0f')} over its {len(alone_rates)} windows alone). A default needs about "
+               f"{notes['gpu_default_seconds_alone']['seconds']} s of a GPU to itself.")
+    no_device = [f"{r['scene']}/{r['variant']}" for r in finished if r.get("device") is None]
+    left_out = [s for s, v in data["pareto"]["scenes"].items() if "left_out" in v]
+    out.append("- Each run's `metrics.json` names its device (`\"cpu\"`, or the accelerator's kind); `results.md` has "
+               "a device column and `psnr_vs_time.png` labels a GPU run. A Pareto chart leaves out a scene whose runs "
+               f"ran on different devices (`pareto.json` says so for {names(left_out) if left_out else 'none'}). "
+               f"Rows evaluated before metrics named the device show none ({len(no_device)} of {len(finished)}); all "
+               "of them ran on the CPU.")
+    run2 = sorted({n.split("_run")[0][len(NAME) + 1:] for n in data["progress"] if "_run" in n})
+    out.append(f"- The PSNR-against-time curve of each run is in `../{NAME}_SEGMENT[_compact]_progress.{{json,png}}` "
+               f"({names(run2)}: `_run2_progress` for the default run in the table).")
+    out.append("")
+
+    # -------- compact variant
+    reach = []
+    for s in both:
+        _, prog = run_progress(data, c[s])
+        if prog:
+            cs, st = prog["curve"]["surfels"], prog["curve"]["step"]
+            reach.append(next(st[i] for i in range(len(cs)) if cs[i] >= prog["surfels"]))
+    fr = {r["count_fraction"] for r in c.values()}
+    (fraction,) = fr
+    out += ["## Compact variant", "",
+            f"The compact variant uses `strategy = \"{names(sorted({r['strategy'] for r in c.values()}))}\"` with "
+            f"`max_surfels` at a fifth of the same segment's default count (`count_fraction = {fraction:g}`), "
+            f"everything else as the default ({steps:,} steps, {w}x{h}). Its cap is reached by steps "
+            f"{rng(reach, ',')} (progress curves).", ""]
+    out += table(["segment", "steps", "test PSNR (dB)", "test L1", "test SSIM", "Gaussians", "training wall s"],
+                 [[f"{s} (compact)", f"{c[s]['steps']:,}", f"{c[s]['psnr']:.2f}", f"{c[s]['l1']:.4f}",
+                   f"{c[s]['ssim']:.3f}", f"{c[s]['num_gaussians']:,}", f"{c[s]['train_seconds']:,.0f}"] for s in both])
+    out.append("")
+    first = [p_ for n, p_ in data["progress"].items() if n == f"{NAME}_row1_x0_progress.json"]
+    if first and "row1_x0" in both:
+        r0 = first[0]["surfels"]
+        cap_ = c["row1_x0"]["num_gaussians"]
+        out.append(f"- **row1_x0's cap** came from a first default run whose final count was {r0:,} (max_surfels = "
+                   f"{cap_:,}); that run's folder was lost, and the default in the table, a second run, finished at "
+                   f"{d['row1_x0']['num_gaussians']:,}, so this compact run has {frac['row1_x0']:.1%} of its count.")
+    configs = data["compact_configs"]
+    out.append(f"- **{names([f'{s}' + chr(39) + 's' for s in configs])} compact runs** were started through the "
+               "runner's `train_and_evaluate` with the experiment's resolved config and their cap, because the "
+               "default's `metrics.json` was not available at the time. Their configs are committed beside this file: "
+               f"`ghsplat train --config benchmarks/results/{NAME}/{configs[0]}_compact_config.toml --out "
+               f"runs/{NAME}/{configs[0]}/compact` reproduces one (the segment's SfM data must first exist at "
+               f"`{seginfo[configs[0]]['data']}`; any `ghsplat run` of this experiment makes it).")
+    out.append("- **row1_x0's run folders are gone**, so its two rows live only in `results.json`. A report keeps a "
+               "planned run's row from there when its folder has no `metrics.json` (with a warning), so such rows stay "
+               "in the table as other segments finish.")
+    out.append("")
+
+    # -------- SfM
+    ok = [s for s in seginfo.values() if s["status"] == "ok"]
+    plain = notes["sfm_plain_mapping"]
+    fixes = [f"{s} ({plain[s]['registered']} -> {seginfo[s]['registered']} of {seginfo[s]['views']} views, "
+             f"{seginfo[s]['centre_error_max_pct_extent']:.2f}% max centre error) needed {plain[s]['fix']}"
+             for s in sorted(k_ for k_ in plain if k_ != "about")]
+    other = notes["sfm_row3_x0_other_host"]
+    r3 = seginfo["row3_x0"]
+    out += ["## SfM of the segments", "",
+            f"- {'All ' + str(len(ok)) if len(ok) == len(seginfo) else str(len(ok)) + ' of ' + str(len(seginfo))} "
+            f"segments are status ok (`segments.md`), so the runner trains every one. " + " and ".join(
+                [fixes[0]] + [f.replace(" needed ", " ") for f in fixes[1:]])
+            + "; with plain mapping they came out partial.",
+            f"- row3_x0 is ok with a {rng([r3['centre_error_max_pct_extent'], other['centre_error_max_pct_extent']], '.1f')}"
+            "% max centre error (two hosts): its first two photos are off by several degrees, and no check catches "
+            "that.",
+            f"- **Remaking a segment does not always give the same model on another machine.** The {cap['views']} "
+            f"photos of row3_x0 come out byte-identical each time (sha256 of `cat images/*.png`: "
+            f"{other['images_sha256']}), and one machine repeats its SfM exactly, yet two hosts gave "
+            f"{r3['reprojection_px']:.3f} px, {r3['centre_error_max_pct_extent']:.3f}% max centre error, "
+            f"{r3['rotation_error_max_deg']:.3f} degrees (`segments.json`) and {other['reprojection_px']:.3f} px, "
+            f"{other['centre_error_max_pct_extent']:.3f}%, {other['rotation_error_max_deg']:.3f} degrees, both with "
+            f"pycolmap {r3['pycolmap']}, the first pass unflagged, with this code and with the code of "
+            f"{other['also_with_code']}. Neither load nor the disambiguation path explains it; SIFT's floats can "
+            "follow the CPU's vector code paths. Each segment's `sfm_report.json` now records its machine (CPU model "
+            "and vector extensions), so a difference can be tied to a machine or ruled out. `segments.{json,md}` list "
+            "the data every run here trained on.",
+            f"- The \"SfM s\" column of `segments.md` is the reports' own time "
+            f"({rng([s['sfm_seconds'] for s in seginfo.values()], '.1f')} s a segment on an idle machine); photo "
+            f"rendering takes {notes['photo_render_seconds'][0]}-{notes['photo_render_seconds'][1]} s a segment.", ""]
+
+    # -------- running it again
+    out += ["## Running it again", "",
+            f"`ghsplat run experiments/{NAME}.toml` makes the photos and SfM of every segment whose folder is missing "
+            "and trains every run whose folder has no `metrics.json`, each default followed by its compact one (the "
+            "compact run takes its cap from the finished default's count, so it cannot go first); `--only "
+            "SEG/VARIANT` picks runs, `--prepare-only` makes the segments and trains nothing. On a lent GPU, "
+            "`ghsplat bench device_table1 --parallel 1` trains one default within a device command's time limit "
+            f"(about {notes['gpu_default_seconds_alone']['seconds']} s alone plus the machine's start); see "
+            "[docs/performance.md](../../../docs/performance.md#table-1-segments-on-a-gpu).", ""]
+    return "\n".join(out)
+
+
+def generate(results: Path = RESULTS) -> str:
+    """The README text, from the committed results files under `results`."""
+    return render(load(results))
+
+
+def check(readme: Path, results: Path = RESULTS) -> str:
+    """'' when `readme` is what the results files give, else a unified diff (committed -> generated)."""
+    want, have = generate(results), readme.read_text() if readme.is_file() else ""
+    if want == have:
+        return ""
+    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
+                                        f"{readme} (committed)", f"{readme} (generated)"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", type=Path, default=RESULTS, help="the benchmarks/results folder to read")
+    ap.add_argument("--readme", type=Path, help=f"the README to write or check (default: RESULTS/{NAME}/README.md)")
+    ap.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff if the README differs")
+    args = ap.parse_args(argv)
+    readme = args.readme or args.results / NAME / "README.md"
+    if args.check:
+        diff = check(readme, args.results)
+        if diff:
+            sys.stdout.write(diff)
+            print(f"\n{readme} differs from what {SCRIPT} generates; run it without --check", file=sys.stderr)
+            return 1
+        print(f"{readme}: up to date")
+        return 0
+    sys.path.insert(0, str(ROOT))
+    from ghsplat_jax.io_utils import atomic_write
+
+    with atomic_write(readme, "w") as fh:
+        fh.write(generate(args.results))
+    print(f"wrote {readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

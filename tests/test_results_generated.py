@@ -1,0 +1,117 @@
+"""Every generated results README is what its script makes from the committed results files: each
+generator re-runs on the committed files and its text must equal the committed README, so a
+number edited by hand (or a results file changed without regenerating) fails here.
+
+Generators checked (each renders from committed files only, no run folders):
+- benchmarks/analysis/table1_readme.py -> benchmarks/results/table1_greenhouse/README.md
+- benchmarks/analysis/auto_recipe.py   -> benchmarks/results/auto_recipe/README.md (from its results.json)
+- benchmarks/robustness/sfm_crosscheck.py -> benchmarks/results/sfm_crosscheck/README.md (from its results.json)
+
+The first two import no JAX; sfm_crosscheck's module does (its table helper): a few seconds.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def _module(rel: str):
+    path = ROOT / rel
+    sys.path.insert(0, str(path.parent.parent))  # benchmarks/: record.py, for the scripts that import it
+    try:
+        spec = importlib.util.spec_from_file_location(path.stem + "_under_test", path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(path.parent.parent))
+    return mod
+
+
+@pytest.fixture(scope="module")
+def table1():
+    return _module("benchmarks/analysis/table1_readme.py")
+
+
+@pytest.fixture(scope="module")
+def auto_recipe():
+    return _module("benchmarks/analysis/auto_recipe.py")
+
+
+def test_table1_readme_is_generated(table1):
+    diff = table1.check(RESULTS / "table1_greenhouse" / "README.md")
+    assert not diff, "table1_greenhouse/README.md differs from benchmarks/analysis/table1_readme.py's:\n" + diff
+
+
+def test_auto_recipe_readme_is_generated(auto_recipe):
+    diff = auto_recipe.check(RESULTS / "auto_recipe")
+    assert not diff, "auto_recipe/README.md differs from its results.json:\n" + diff
+
+
+def test_sfm_crosscheck_readme_is_generated():
+    mod = _module("benchmarks/robustness/sfm_crosscheck.py")
+    diff = mod.check()
+    assert not diff, "sfm_crosscheck/README.md differs from its results.json:\n" + diff
+
+
+def _edit_a_number(text: str, old: str, new: str) -> str:
+    assert old in text, f"{old!r} not in the README any more; pick another number for this test"
+    return text.replace(old, new, 1)
+
+
+def test_table1_check_fails_on_a_hand_edited_number(table1, tmp_path):
+    """A copy of the committed README with one number changed: --check exits 1 and shows the line."""
+    readme = tmp_path / "README.md"
+    committed = (RESULTS / "table1_greenhouse" / "README.md").read_text()
+    gain = re.search(r"\| row2_x1 \| [\d.]+ \| (\+[\d.]+) \|", committed).group(1)
+    readme.write_text(_edit_a_number(committed, f"| {gain} |", "| +0.99 |"))
+    diff = table1.check(readme)
+    assert "+0.99" in diff and gain in diff
+    assert table1.main(["--check", "--readme", str(readme)]) == 1
+    readme.write_text(committed)
+    assert table1.main(["--check", "--readme", str(readme)]) == 0
+
+
+def test_table1_check_fails_when_a_results_file_changes(table1, tmp_path):
+    """The README follows the results: a changed PSNR in results.json makes the committed one stale."""
+    results = tmp_path / "results"
+    shutil.copytree(RESULTS / "table1_greenhouse", results / "table1_greenhouse")
+    for p in list(RESULTS.glob("table1_greenhouse_*_progress.json")) + [RESULTS / "fusion_profile_step.json"]:
+        shutil.copy(p, results / p.name)
+    assert table1.check(results / "table1_greenhouse" / "README.md", results) == ""
+    path = results / "table1_greenhouse" / "results.json"
+    path.write_text(path.read_text().replace("31.485863276890345", "31.0", 1))  # row0_x1 compact
+    diff = table1.check(results / "table1_greenhouse" / "README.md", results)
+    assert "31.49" in diff and "31.00" in diff
+
+
+def test_auto_recipe_check_fails_on_a_hand_edited_number(auto_recipe, tmp_path):
+    shutil.copy(RESULTS / "auto_recipe" / "results.json", tmp_path / "results.json")
+    committed = (RESULTS / "auto_recipe" / "README.md").read_text()
+    row = next(line for line in committed.splitlines() if line.startswith("| row") and " auto" in line)
+    psnr = row.split(" | ")[3]
+    (tmp_path / "README.md").write_text(committed.replace(row, row.replace(f" {psnr} ", " 99.99 ", 1), 1))
+    assert "99.99" in auto_recipe.check(tmp_path)
+    assert auto_recipe.main(["--check", "--out", str(tmp_path)]) == 1
+
+
+def test_spearman_exact_permutation_p_value(table1):
+    rho, p = table1.spearman([1, 2, 3, 4], [1, 2, 3, 4])
+    assert rho == pytest.approx(1.0) and p == pytest.approx(2 / 24)  # the two perfect orderings of 4! = 24
+    rho, p = table1.spearman([1, 2, 3, 4, 5], [2, 1, 4, 3, 5])
+    assert rho == pytest.approx(0.8)
+    scipy_stats = pytest.importorskip("scipy.stats")
+    a, b = [3.1, 0.2, 5.5, 1.4, 2.2, 4.0, 0.9], [0.5, 0.1, 0.7, 1.2, 0.3, 0.9, 0.2]
+    rho, p = table1.spearman(a, b)
+    assert rho == pytest.approx(scipy_stats.spearmanr(a, b).statistic)
+    assert p == pytest.approx(scipy_stats.permutation_test(
+        (b,), lambda y: scipy_stats.spearmanr(a, y).statistic, permutation_type="pairings",
+        alternative="two-sided", n_resamples=10**6).pvalue, abs=1e-9)
