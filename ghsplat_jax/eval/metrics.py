@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from ghsplat_jax.eval.geometry import GEOMETRY_METRICS
 from ghsplat_jax.train import losses
 
 METRICS = ("psnr", "l1", "ssim")
@@ -63,7 +64,8 @@ def background_cover(rendered_alpha, image_alpha) -> dict[str, float]:
 def summarize(rows: list[dict]) -> dict:
     """Mean of each metric over views (PSNR averaged per view, as the 3DGS papers do); LPIPS and
     the background metrics when every view has them; the structure metrics over the views that
-    have them (`structure_views` of them)."""
+    have them (`structure_views` of them), and so the depth and normal errors against ground
+    truth (`geometry_views`; eval/geometry.py)."""
     if not rows:
         return {k: None for k in METRICS} | {"num_views": 0}
     keys = METRICS + tuple(k for k in OPTIONAL_METRICS + BACKGROUND_METRICS if all(k in r for r in rows))
@@ -72,6 +74,12 @@ def summarize(rows: list[dict]) -> dict:
     if structured:  # views of a flat photo have none: the mean over those that have
         out |= {k: float(np.mean([r[k] for r in structured])) for k in STRUCTURE_METRICS}
         out["structure_views"] = len(structured)
+    for key in GEOMETRY_METRICS:  # a view the model leaves uncovered has none; the count says how many had
+        values = [r[key] for r in rows if key in r]
+        if values:
+            out[key] = float(np.mean(values))
+    if any(k in r for r in rows for k in GEOMETRY_METRICS):
+        out["geometry_views"] = sum(any(k in r for k in GEOMETRY_METRICS) for r in rows)
     return out
 
 

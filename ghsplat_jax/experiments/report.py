@@ -16,8 +16,8 @@ PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (27
 
 RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
 RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "lpips",
-                  "num_gaussians", "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device",
-                  "status", "run_dir")
+                  "depth_abs_err", "normal_err_deg", "num_gaussians", "train_seconds", "step_seconds", "steps",
+                  "render_seconds_per_view", "device", "status", "run_dir")
 
 
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
@@ -32,7 +32,8 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
     return {
         "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
         "psnr": s.get("psnr"), "structure_psnr": s.get("structure_psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"),
-        "lpips": s.get("lpips"), "num_gaussians": m.get("num_gaussians"),
+        "lpips": s.get("lpips"), "depth_abs_err": s.get("depth_abs_err"), "normal_err_deg": s.get("normal_err_deg"),
+        "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
         "render_seconds_per_view": m.get("render_seconds_per_view"), "device": m.get("device"),
         "run_dir": str(run_dir),
