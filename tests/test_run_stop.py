@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 from test_train_loop import CONFIG
 
+from ghsplat_jax.eval.lpips import weights_path
 from ghsplat_jax.experiments import runner
 from ghsplat_jax.experiments.report import table1_markdown
 from ghsplat_jax.experiments.runner import collect, load_experiment, run_experiment
@@ -105,6 +106,8 @@ def test_stop_at_trains_to_the_step_then_the_run_resumes_and_evaluation_names_it
     assert set(m["outlier_views"]) == {"train", "test"} and isinstance(m["warnings"], list)
     assert m["train_test_gap_db"] == m["train"]["psnr"] - m["test"]["psnr"]
     assert "structure_psnr" in m["test"] and "structure_gap_db" in m
+    if weights_path() is not None:  # LPIPS on the test views only, and in the results table
+        assert m["test"]["lpips"] > 0 and "lpips" not in m["train"] and result["rows"][0]["lpips"] == m["test"]["lpips"]
 
 
 def test_a_run_without_enough_points_starts_from_triangulated_ones(tmp_path, monkeypatch):

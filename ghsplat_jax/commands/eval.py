@@ -30,7 +30,8 @@ def main(args) -> int:
         t = m["test"] if m["test"].get("num_views") else m["train"]
         which = "test" if m["test"].get("num_views") else "train"
         at = f" (snapshot at step {m['steps']})" if not Path(run, PLY_NAME).is_file() else ""
-        print(f"{run}{at}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}, "
+        lpips = f", LPIPS {t['lpips']:.4f}" if "lpips" in t else ""  # test views, weights installed
+        print(f"{run}{at}: {which} PSNR {t['psnr']:.2f} dB, L1 {t['l1']:.4f}, SSIM {t['ssim']:.4f}{lpips}, "
               f"{m['num_gaussians']} surfels, {m['render_seconds_per_view']:.3f} s/view")
     if args.report:
         from ghsplat_jax.experiments.report import collect_runs, write_table1

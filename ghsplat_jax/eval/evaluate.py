@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.eval.geometry import geometry_errors, ground_truth
 from ghsplat_jax.eval.metrics import (
     TRAIN_TEST_GAP_DB,
     background_cover,
     image_metrics,
+    lpips_metrics,
     psnr_outliers,
     structure_gap,
     structure_metrics,
@@ -72,7 +74,9 @@ def save_view_maps(folder: Path, name: str, out) -> None:
 def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = None, steps: int | None = None,
              save_renders: bool | None = None, progress: bool | None = None,
              train_peak_rss_mb: float | None = None, extra: dict | None = None) -> dict:
-    """Render every test view and (up to config.eval_max_train_views) training view; write
+    """Render every test view and (up to config.eval_max_train_views) training view, with LPIPS on
+    the test views when config.eval_lpips and its weights are installed, and depth and normal
+    error where the dataset is a synth scene with ground truth (eval/geometry.py); write
     OUT/metrics.json and OUT/per_view.json (and renders under OUT/renders/test/); return metrics.
     peak_rss_mb is this process's peak, or the training process's when that was larger.
     `extra`: more facts of the run for metrics.json (e.g. why a self-stopping run stopped)."""
@@ -104,6 +108,11 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             times.append(dt)
             m = (image_metrics(out.rgb, v.image) | structure_metrics(out.rgb, v.image, v.alpha)
                  | background_cover(out.alpha, v.alpha))
+            if split == "test" and config.eval_lpips:  # the papers report it on test views; a VGG pass is costly
+                m |= lpips_metrics(out.rgb, v.image)
+            truth = ground_truth(getattr(dataset, "root", None), v.name, v.camera.width, v.camera.height)
+            if truth is not None:  # a synth scene: depth and normal error against its ray-cast geometry
+                m |= geometry_errors(out.median_depth if rcfg.median else None, out.normal, out.alpha, *truth)
             if not all(math.isfinite(x) for x in m.values()):
                 raise FloatingPointError(f"view {v.name}: non-finite metrics {m}")
             rows.append(dict(split=split, name=v.name, render_seconds=dt, **m))

