@@ -12,6 +12,8 @@ HELP = "generate a procedural greenhouse scene and render a dataset with ground 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, help="scene TOML (default: built-in defaults)")
+    parser.add_argument("--preset", default=None,
+                        help="a named scene under --config's values (thin-plant: one thin plant on black, no ground)")
     parser.add_argument("--out", type=Path, required=True, help="output dataset folder")
     parser.add_argument("--views", type=int, default=40, help="number of views (default 40)")
     parser.add_argument("--width", type=int, default=640)
@@ -29,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fov", type=float, default=65.0, help="horizontal field of view, degrees")
     parser.add_argument("--fps", type=float, default=2.0, help="frame rate of the capture (time stamps)")
     parser.add_argument("--seed", type=int, default=None, help="override the config's seed")
-    parser.add_argument("--points", type=int, default=20000, help="surface samples for points3D")
+    parser.add_argument("--points", type=int, default=20000,
+                        help="surface samples for points3D (0: cameras only, an empty points3D.txt)")
     parser.add_argument("--no-mesh", action="store_true", help="skip mesh.ply / mesh.glb")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")
 
@@ -38,7 +41,10 @@ def main(args: argparse.Namespace) -> int:
     from ghsplat_jax.synth import capture, config, dataset, scene
 
     try:
-        cfg = config.load_config(args.config) if args.config else config.SceneConfig()
+        if args.config:
+            cfg = config.load_config(args.config, preset=args.preset)
+        else:
+            cfg = config.preset_config(args.preset) if args.preset else config.SceneConfig()
     except (FileNotFoundError, ValueError) as exc:
         print(f"ghsplat synth: {exc}", file=sys.stderr)
         return 2

@@ -97,7 +97,7 @@ def _name(entry: dict, kind: str, i: int, source) -> str:
 
 
 _KEYS = {"name", "description", "output", "results", "kind", "prepare", "cases", "train", "scenes", "variants",
-         "reports", "sfm_recorded"}
+         "reports", "sfm_recorded", "seeds"}
 KINDS = ("train", "stability")
 
 

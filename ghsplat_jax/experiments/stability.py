@@ -28,7 +28,6 @@ import csv
 import dataclasses
 import hashlib
 import io
-import itertools
 import json
 import logging
 import math
@@ -58,7 +57,8 @@ class StudyError(ValueError):
 _KEYS = {
     "sfm_recorded": {"recorded", "methods"},
     "sfm": {"plants", "identical", "views", "width", "height", "seed", "path", "blur_px", "contrast", "methods"},
-    "train": {"pose_noise", "views", "init", "init_jitter", "corrupt_views", "baseline", "train"},
+    "train": {"pose_noise", "views", "init", "init_jitter", "corrupt_views", "baseline", "train", "seeds", "dataset",
+              "triangulate", "goal_plant_psnr"},
     "divergence": {"train"},
     "raster": {"scene", "compositor", "width", "height", "seed"},
 }
@@ -260,79 +260,298 @@ def _load(case: dict, cfg):
     return dataclasses.replace(ds, **changes)
 
 
-def run_train(case: dict, ctx) -> list[dict]:
+# ---------------------------------------------------------------- what flagged a run
+DETECTORS = ("input check", "NaN guard", "outlier views", "train-test gap", "structure gap")
+
+
+def _eval_warning(metrics: dict, starts: str) -> str | None:
+    """The evaluation's logged warning (metrics.json `warnings`) that begins with `starts`, as
+    the console shows it (`ghsplat train --out OUT`)."""
+    for text in metrics.get("warnings") or []:
+        if text.startswith(starts):
+            return f"WARNING ghsplat.eval: OUT: {text}"
+    return None
+
+
+def detect(metrics: dict | None, warnings: list[str]) -> list[dict]:
+    """What flagged one training run, in DETECTORS order: [{kind, detail, message}], `message`
+    being the exact warning text the user sees. `warnings`: the lines logged while it trained
+    (the trainer's and the triangulation's: `_capture_warnings`); `metrics`: its metrics.json
+    (the evaluation's checks: eval.evaluate.diagnose), None when it was not evaluated."""
+    from ghsplat_jax.eval.metrics import TRAIN_TEST_GAP_DB
+
+    found = []
+    guard = [w for w in warnings if "rolled back" in w]
+    inputs = [w for w in warnings if w not in guard]
+    if inputs:  # trainer.warn_about_inputs (random init, few views), triangulation giving too few points
+        found.append({"kind": "input check", "detail": "warned when training starts",
+                      "message": "\n".join(inputs)})
+    if guard:
+        found.append({"kind": "NaN guard", "detail": f"{len(guard)} step(s) rolled back",
+                      "message": guard[0] + (f" (and {len(guard) - 1} more)" if len(guard) > 1 else "")})
+    metrics = metrics or {}
+    outliers = metrics.get("outlier_views") or {}
+    for split in ("train", "test"):
+        views = outliers.get(split) or []
+        if views:
+            found.append({"kind": "outlier views",
+                          "detail": f"{split}: " + ", ".join(v["name"] for v in views),
+                          "message": _eval_warning(metrics, f"{len(views)} {split} view(s) far below")
+                          or f"{split} outlier views: " + ", ".join(v["name"] for v in views)})
+    gap = metrics.get("train_test_gap_db")
+    if gap is not None and gap > TRAIN_TEST_GAP_DB:
+        found.append({"kind": "train-test gap", "detail": f"{gap:.1f} dB",
+                      "message": _eval_warning(metrics, "the training views' PSNR") or f"train-test gap {gap:.1f} dB"})
+    gaps = metrics.get("structure_gap_db") or {}
+    if gaps:
+        found.append({"kind": "structure gap", "detail": ", ".join(f"{k} {v:.1f} dB" for k, v in gaps.items()),
+                      "message": "\n".join(_eval_warning(metrics, f"{k} views: the PSNR where the photos show")
+                                           or f"{k} structure gap {v:.1f} dB" for k, v in gaps.items())})
+    return found
+
+
+def describe_detection(ok: bool, per_seed: list[list[dict]], seeds: list[int],
+                       baseline_kinds: set[str] = frozenset()) -> tuple[str, str | None]:
+    """(detection, message) of a row from the detectors that fired on each seed's run. A
+    failing row counts as detected only by a detector that does not also fire on the baseline
+    (`baseline_kinds`); one whose failure none reports is "NOT DETECTED". The message is the
+    fired detectors' warnings (the first seed's that raised each), one per line; None when
+    nothing fired."""
+    kinds = {}
+    for seed, found in zip(seeds, per_seed):
+        for f in found:
+            entry = kinds.setdefault(f["kind"], {"seeds": [], "first": f})
+            entry["seeds"].append(seed)
+    order = [k for k in DETECTORS if k in kinds] + [k for k in kinds if k not in DETECTORS]
+    n = len(seeds)
+
+    def label(k):
+        e = kinds[k]
+        return f"{k} ({e['first']['detail']}; {len(e['seeds'])} of {n} seed(s))"
+
+    message = "\n".join(kinds[k]["first"]["message"] for k in order) or None
+    if ok:
+        return ("none needed" if not order else "passes; warned: " + "; ".join(label(k) for k in order)), message
+    telling = [k for k in order if k not in baseline_kinds]
+    if not telling:
+        also = [k for k in order if k in baseline_kinds]
+        return ("NOT DETECTED: training ends normally" + (
+            f" (the {', '.join(also)} warning also fires on the baseline)" if also else "")), message
+    return "; ".join(label(k) for k in telling), message
+
+
+# ------------------------------------------------------------------------ over seeds
+def seed_stats(values: list[float]) -> dict:
+    """mean, sd (sample, 0 for one seed), min, max and n of one number over seeds."""
+    v = np.asarray(values, np.float64)
+    return {"mean": float(v.mean()), "sd": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "min": float(v.min()), "max": float(v.max()), "n": int(len(v))}
+
+
+def verdict_spread(values: list[float], line: float, paired_with: list[float] | None = None) -> dict:
+    """How far a row's mean stands from its pass line, against the seed spread. With
+    `paired_with` (the baseline's values for the same seeds) the criterion is relative: margin
+    = mean(value - baseline) - line, spread = sd of those per-seed differences; else margin =
+    mean(value) - line, spread = sd(values). `outside` is true when |margin| > spread (the
+    verdict does not hinge on the seed), false when within it; None for one seed."""
+    v = np.asarray(values, np.float64)
+    if paired_with is not None:
+        b = np.asarray(paired_with, np.float64)
+        v = v - b if len(b) == len(v) else v - b.mean()
+    margin = float(v.mean() - line)
+    spread = float(v.std(ddof=1)) if len(v) > 1 else 0.0
+    return {"margin_db": margin, "spread_db": spread, "outside": (abs(margin) > spread) if len(v) > 1 else None}
+
+
+def _fmt_seeds(name: str, values: list[float], seeds: list[int]) -> str:
+    st = seed_stats(values)
+    return (f"{name} {st['mean']:.2f} ± {st['sd']:.2f} dB (seeds " + ", ".join(
+        f"{s}: {x:.2f}" for s, x in zip(seeds, values)) + ")")
+
+
+# --------------------------------------------------------------------- a thin object
+def prepare_scene(spec: dict, folder: Path) -> Path:
+    """A synth preset scene (`dataset = {preset, capture, views, width, height, ...}` of a train
+    case) rendered into `folder`, kept while its settings hold. `points = 0`: cameras only."""
+    from ghsplat_jax.synth import capture, config, dataset, scene
+
+    p = {"preset": "thin-plant", "capture": "orbit", "views": 18, "width": 128, "height": 96, "seed": 0,
+         "points": 0, "orbit_radius": 0.5, "camera_height": 0.8, "target_height": 0.3} | dict(spec)
+    stamp = folder / "prepare.json"
+    if stamp.is_file() and json.loads(stamp.read_text()) == p:
+        return folder
+    cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
+    world = scene.generate_scene(cfg)
+    path = capture.PathConfig(orbit_radius=float(p["orbit_radius"]), height=float(p["camera_height"]),
+                              target_height=float(p["target_height"]))
+    cams = capture.capture_path(world, p["capture"], int(p["views"]), width=int(p["width"]),
+                                height=int(p["height"]), seed=int(p["seed"]), config=path)
+    dataset.write_dataset(world, cams, folder, n_points=int(p["points"]), meshes=False, overwrite=True)
+    write_json(stamp, p)
+    return folder
+
+
+def object_psnr(surfels, views, folder: Path, cfg) -> float | None:
+    """Mean over `views` of the PSNR over the pixels the dataset's instance masks mark as a
+    plant (synth's masks/STEM.png, instances.json), the render clipped to [0, 1]; None when no
+    view has such a pixel."""
+    import jax
+
+    from ghsplat_jax.data.images import read_pixels
+    from ghsplat_jax.raster.render import capacity_for_views, render
+
+    plants = [i["id"] for i in json.loads((folder / "instances.json").read_text())["instances"]
+              if i["class"] == "plant"]
+    surfels = jax.tree_util.tree_map(jax.numpy.asarray, surfels)
+    rcfg = dataclasses.replace(cfg.raster, pair_capacity=capacity_for_views(surfels, [v.camera for v in views],
+                                                                             cfg.raster))
+    out = []
+    for v in views:
+        mask = np.isin(read_pixels(folder / "masks" / (Path(v.name).stem + ".png")), plants)
+        mask = mask.reshape(mask.shape[:2])
+        h, w = v.image.shape[:2]
+        if mask.shape != (h, w):  # a downscaled run: the mask's nearest pixels
+            mask = mask[(np.arange(h) * mask.shape[0] // h)[:, None], np.arange(w) * mask.shape[1] // w]
+        if not mask.any():
+            continue
+        rgb = np.clip(np.asarray(render(surfels, v.camera, rcfg).rgb, np.float64), 0, 1)
+        mse = max(float(np.mean((rgb[mask] - v.image[mask]) ** 2)), 1e-20)
+        out.append(-10 * np.log10(mse))
+    return float(np.mean(out)) if out else None
+
+
+# ------------------------------------------------------------------------- a training case
+def case_seeds(case: dict, ctx) -> list[int]:
+    seeds = case.get("seeds", ctx.seeds if ctx is not None else None) or [int(ctx.train_base.seed)]
+    if not isinstance(seeds, list) or not all(isinstance(x, int) for x in seeds):
+        raise StudyError(f"case {case['name']!r}: seeds must be a list of integers, got {seeds!r}")
+    return seeds
+
+
+def _train_seed(case: dict, ctx, seed: int) -> dict:
     from ghsplat_jax.eval.evaluate import evaluate
+    from ghsplat_jax.sfm.triangulate import with_triangulated_points
     from ghsplat_jax.train.trainer import train
 
     cfg = _train_config(case, ctx)
+    if case.get("dataset"):
+        cfg = cfg.replace(data=str(ctx.scenes[case["name"]]))
     noise = float(case.get("pose_noise", 0.0))
-    cfg = cfg.replace(pose_noise=noise)
+    cfg = cfg.replace(pose_noise=noise, seed=int(seed))
     ds = _load(case, cfg)
-    out = ctx.output / "train" / case["name"]
+    out = ctx.output / "train" / case["name"] / f"seed{seed}"
     shutil.rmtree(out, ignore_errors=True)
     with _capture_warnings() as warnings:
         start = time.perf_counter()
+        if case.get("triangulate", True) and case.get("init") != "random":  # as `ghsplat train` does
+            ds = with_triangulated_points(ds, cfg.init_min_points, out)
         result = train(cfg, out, dataset=ds)
         seconds = time.perf_counter() - start
     # scored on the intact images (a corrupt training view is the input's fault, not the model's)
     clean = _load(dict(case, corrupt_views=0), cfg) if case.get("corrupt_views") else ds
     metrics = evaluate(result.surfels, clean, cfg, out, result.train_seconds, result.steps)
-    rollbacks = result.rollbacks
     med = _median_test(out)
+    plant = object_psnr(result.surfels, clean.test, Path(cfg.data), cfg) if case.get("goal_plant_psnr") else None
+    points = 0 if ds.points is None else int(len(ds.points))
+    return {"seed": int(seed), **med, "test_psnr_mean": metrics["test"]["psnr"], "plant_psnr": plant,
+            "finite": _finite_on_disk(out), "rollbacks": result.rollbacks, "num_gaussians": metrics["num_gaussians"],
+            "steps": metrics["steps"], "train_seconds": metrics["train_seconds"], "seconds": seconds,
+            "found": detect(metrics, warnings), "init_points": points, "train_views": len(ds.train),
+            "test_views": len(ds.test), "image_size": f"{ds.train[0].camera.width}x{ds.train[0].camera.height}",
+            "structure_psnr": metrics["test"].get("structure_psnr"), "cfg_steps": cfg.steps}
+
+
+def run_train(case: dict, ctx) -> list[dict]:
+    seeds = case_seeds(case, ctx)
+    if case.get("dataset"):
+        ctx.scenes[case["name"]] = prepare_scene(
+            case["dataset"], ctx.output / "scenes" / hashlib.sha256(
+                json.dumps(case["dataset"], sort_keys=True).encode()).hexdigest()[:12])
+    runs = [_train_seed(case, ctx, s) for s in seeds]
+    r0 = runs[0]
+    noise = float(case.get("pose_noise", 0.0))
     what = [f"pose noise {100 * noise:g}% of extent" if noise else "",
-            f"{len(ds.train)} training views" if case.get("views") else "",
+            f"{r0['train_views']} training views" if case.get("views") else "",
             "random init (no SfM points)" if case.get("init") == "random" else "",
             f"SfM points jittered {100 * float(case['init_jitter']):g}% of extent" if case.get("init_jitter") else "",
-            f"{case['corrupt_views']} NaN view(s)" if case.get("corrupt_views") else ""]
+            f"{case['corrupt_views']} NaN view(s)" if case.get("corrupt_views") else "",
+            (f"{case['dataset'].get('preset', 'thin-plant')} scene, cameras without points, "
+             + (f"{r0['init_points']} triangulated points" if r0["init_points"] else "random init (no points)")
+             + ("" if case.get("triangulate", True) else " (--no-triangulate)")) if case.get("dataset") else ""]
     method = "; ".join(w for w in what if w) or "exact poses, all views, SfM-point init (baseline)"
-    psnr, base = med["test_psnr"], ctx.baseline_psnr
-    finite = _finite_on_disk(out)
-    if case.get("baseline") or base is None:
-        ok = psnr is not None and math.isfinite(psnr) and finite
-        crit = "baseline"
+    psnrs = [r["test_psnr"] for r in runs]
+    st = seed_stats(psnrs)
+    finite = all(r["finite"] for r in runs)
+    base = ctx.baseline  # {seed: test PSNR} of the baseline case
+    goal = case.get("goal_plant_psnr")
+    spread = None
+    if goal is not None:  # an absolute criterion on the object's own pixels
+        plant = [r["plant_psnr"] if r["plant_psnr"] is not None else float("nan") for r in runs]
+        pst = seed_stats(plant)
+        ok = finite and pst["mean"] >= float(goal)
+        spread = verdict_spread(plant, float(goal))
+        error = (_fmt_seeds("plant-pixel PSNR", plant, seeds) + f" (goal >= {float(goal):g} dB, "
+                 f"{spread['margin_db']:+.2f} dB); whole-image test PSNR "
+                 f"{np.mean([r['test_psnr_mean'] for r in runs]):.2f} dB (median "
+                 f"{st['mean']:.2f}); train PSNR {np.mean([r['train_psnr'] for r in runs]):.2f} dB")
+    elif case.get("baseline") or not base:
+        ok = finite and all(math.isfinite(x) for x in psnrs)
+        error = _fmt_seeds("test PSNR", psnrs, seeds) + " (baseline)"
     else:
-        ok = finite and psnr >= base - PSNR_DROP_DB
-        crit = f"{psnr - base:+.2f} dB vs baseline"
-    error = f"test PSNR {psnr:.2f} dB ({crit}), L1 {med['test_l1']:.4f}; train PSNR {med['train_psnr']:.2f} dB"
-    guard = [w for w in warnings if "rolled back" in w]
-    inputs = [w for w in warnings if w not in guard]  # trainer.warn_about_inputs: random init, few views
-    if guard:
-        detection = f"NaN guard: {rollbacks} step(s) rolled back, each logged as a warning"
-        message = guard[0] + f" (and {len(guard) - 1} more)" if len(guard) > 1 else guard[0]
-    elif inputs:
-        detection = "input check: warned when training starts (trainer.warn_about_inputs)"
-        message = "; ".join(inputs)
-    elif ok:
-        detection = "none needed"
-        message = None
-    else:
-        detection = "NOT DETECTED: training ends normally"
-        message = None
-    if message is None:  # what `ghsplat train` prints at the end
-        message = (f"OUT: {metrics['num_gaussians']} surfels, {metrics['steps']} steps, "
-                   f"{metrics['train_seconds']:.1f} s, test PSNR {metrics['test']['psnr']:.2f} dB")
+        paired = [base.get(s, float("nan")) for s in seeds]
+        if not all(math.isfinite(x) for x in paired):
+            paired = list(base.values())
+        spread = verdict_spread(psnrs, -PSNR_DROP_DB, paired)
+        ok = finite and spread["margin_db"] >= 0  # mean(psnr - baseline) >= -PSNR_DROP_DB
+        error = (_fmt_seeds("test PSNR", psnrs, seeds)
+                 + f" ({spread['margin_db'] - PSNR_DROP_DB:+.2f} dB vs baseline mean)")
+    if spread is not None and spread["outside"] is not None:
+        error += (f"; {'pass' if ok else 'fail'} {'stands outside' if spread['outside'] else 'is WITHIN'} the seed "
+                  f"spread (|margin| {abs(spread['margin_db']):.2f} vs sd {spread['spread_db']:.2f} dB)")
+    base_kinds = set(ctx.baseline_kinds) if not case.get("baseline") and goal is None else set()
+    detection, message = describe_detection(ok, [r["found"] for r in runs], seeds, base_kinds)
+    if message is None:  # what `ghsplat train` prints at the end (first seed)
+        message = (f"OUT: {r0['num_gaussians']} surfels, {r0['steps']} steps, {r0['train_seconds']:.1f} s, "
+                   f"test PSNR {r0['test_psnr_mean']:.2f} dB")
     if case.get("baseline"):
-        ctx.baseline_psnr = psnr
-    return [_row(case, method, ok, error, detection, message, f"run: {ds.train[0].camera.width}x"
-                 f"{ds.train[0].camera.height}, {cfg.steps} steps",
-                 test_psnr=psnr, test_l1=med["test_l1"], train_psnr=med["train_psnr"], pose_noise=noise,
-                 train_views=len(ds.train), test_views=len(ds.test), steps=cfg.steps, rollbacks=rollbacks,
-                 finite_on_disk=finite, num_gaussians=metrics["num_gaussians"], seconds=seconds,
-                 baseline_psnr=base)]
+        ctx.baseline = {r["seed"]: r["test_psnr"] for r in runs}
+        ctx.baseline_kinds = {f["kind"] for r in runs for f in r["found"]}
+    per_seed = [{k: r[k] for k in ("seed", "test_psnr", "test_psnr_mean", "train_psnr", "plant_psnr",
+                                   "structure_psnr", "rollbacks", "num_gaussians", "init_points", "seconds")}
+                | {"detected": [f["kind"] for f in r["found"]]} for r in runs]
+    return [_row(case, method, ok, error, detection, message,
+                 f"run: {r0['image_size']}, {r0['cfg_steps']} steps, seeds {', '.join(map(str, seeds))}",
+                 test_psnr=st["mean"], test_psnr_sd=st["sd"], test_psnrs=psnrs, seeds=seeds,
+                 plant_psnr=None if goal is None else seed_stats(plant)["mean"],
+                 test_psnr_whole_mean=float(np.mean([r["test_psnr_mean"] for r in runs])),
+                 test_l1=float(np.mean([r["test_l1"] for r in runs])),
+                 train_psnr=float(np.mean([r["train_psnr"] for r in runs])), pose_noise=noise,
+                 train_views=r0["train_views"], test_views=r0["test_views"], steps=r0["cfg_steps"],
+                 rollbacks=sum(r["rollbacks"] for r in runs), finite_on_disk=finite,
+                 num_gaussians=r0["num_gaussians"], seconds=sum(r["seconds"] for r in runs),
+                 baseline_psnr=None if case.get("baseline") or not base else float(np.mean(list(base.values()))),
+                 margin_db=None if spread is None else spread["margin_db"],
+                 spread_db=None if spread is None else spread["spread_db"],
+                 outside_spread=None if spread is None else spread["outside"], per_seed=per_seed)]
 
 
 class _capture_warnings:
-    """Collect the trainer's warning lines (what the user sees on the console)."""
+    """Collect the warning lines of training and of its triangulation (what the user sees on
+    the console)."""
+
+    LOGGERS = ("ghsplat.train", "ghsplat.sfm")
 
     def __enter__(self):
         self.lines: list[str] = []
         self.handler = logging.Handler(logging.WARNING)
         self.handler.emit = lambda record: self.lines.append(f"WARNING {record.name}: {record.getMessage()}")
-        logging.getLogger("ghsplat.train").addHandler(self.handler)
+        for name in self.LOGGERS:
+            logging.getLogger(name).addHandler(self.handler)
         return self.lines
 
     def __exit__(self, *exc):
-        logging.getLogger("ghsplat.train").removeHandler(self.handler)
+        for name in self.LOGGERS:
+            logging.getLogger(name).removeHandler(self.handler)
         return False
 
 
@@ -476,7 +695,10 @@ class Context:
     scratch: Path
     train_base: object
     row: Path | None = None
-    baseline_psnr: float | None = None
+    baseline: dict = dataclasses.field(default_factory=dict)  # {seed: test PSNR} of the baseline case
+    baseline_kinds: set = dataclasses.field(default_factory=set)  # detectors that fire on the baseline
+    seeds: list | None = None  # the study file's `seeds` (a case's own `seeds` wins)
+    scenes: dict = dataclasses.field(default_factory=dict)  # case name -> its rendered `dataset` scene
     prepare: dict = dataclasses.field(default_factory=dict)
     recorded: Path | None = None  # the file sfm_recorded cases read (the experiment's `sfm_recorded`)
 
@@ -484,7 +706,8 @@ class Context:
 def _key(case: dict, ctx) -> str:
     extra = {}
     if case["family"] in ("train", "divergence"):
-        extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "baseline": ctx.baseline_psnr}
+        extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "seeds": case_seeds(case, ctx),
+                 "baseline": {str(k): v for k, v in sorted(ctx.baseline.items())}}
     elif case["family"] == "sfm_recorded":  # the rows it reads
         recorded = ctx.recorded if ctx is not None else None
         extra = {"recorded": hashlib.sha256(recorded.read_bytes()).hexdigest() if recorded and recorded.is_file()
@@ -503,14 +726,16 @@ def run_study(exp, only: set[str] | None = None) -> dict:
 
     spec = exp.spec
     cases = check_cases(spec.get("cases"))
-    if only:
-        cases = [c for c in cases if c["name"] in only or c["family"] in only]
+    if only:  # the baseline stays in (reused from its cache when unchanged): the others are judged against it
+        picked = [c for c in cases if c["name"] in only or c["family"] in only]
+        trains = any(c["family"] == "train" for c in picked)
+        cases = [c for c in cases if c in picked or (trains and c.get("baseline"))]
     base = apply_overrides(TrainConfig(), spec.get("train", {}), f"{exp.source} [train]")
     output = Path(exp.output)
     (output / "cases").mkdir(parents=True, exist_ok=True)
     recorded = spec.get("sfm_recorded")
     ctx = Context(output, output, base, prepare=dict(_PREPARE, **spec.get("prepare", {})),
-                  recorded=Path(recorded) if recorded else None)
+                  recorded=Path(recorded) if recorded else None, seeds=spec.get("seeds"))
     # the baseline first: the other training cases are judged against it
     cases = sorted(cases, key=lambda c: not c.get("baseline"))
     rows, failed = [], []
@@ -541,8 +766,9 @@ def run_study(exp, only: set[str] | None = None) -> dict:
             for r in got:
                 r.setdefault("seconds", time.perf_counter() - start)
             write_json(cache, {"key": key, "rows": json_safe(got)})
-        if case.get("baseline") and got:
-            ctx.baseline_psnr = got[0].get("test_psnr")
+        if case.get("baseline") and got and got[0].get("test_psnrs"):  # a cached baseline: the seeds' values
+            ctx.baseline = dict(zip(got[0]["seeds"], got[0]["test_psnrs"]))
+            ctx.baseline_kinds = {k for p in got[0].get("per_seed", []) for k in p.get("detected", [])}
         rows.extend(got)
     order = {c["name"]: i for i, c in enumerate(check_cases(spec.get("cases")))}
     if only:  # a partial rerun: the other cases keep their rows from the last full report
@@ -561,7 +787,7 @@ def _reported_rows(exp) -> list[dict]:
 
 # ------------------------------------------------------------------------------- reports
 def _cell(v) -> str:
-    return "" if v is None else str(v).replace("|", "\\|").replace("\n", " ")
+    return "" if v is None else str(v).replace("|", "\\|").replace("\n", "<br>")
 
 
 def summary(rows: list[dict]) -> dict:
@@ -640,21 +866,15 @@ def reading(rows: list[dict]) -> list[str]:
                       else "listed above with its detection; the NOT DETECTED ones return exit 0 with a wrong model."))
     tr = [r for r in rows if r["family"] == "train" and r.get("test_psnr") is not None]
     if tr:
-        from ghsplat_jax.train.trainer import FEW_TRAIN_VIEWS
-
-        parts = [f"{r['case']} {r['test_psnr']:.2f} dB" for r in tr]
-        out.append("- Training (median test PSNR): " + ", ".join(parts) + ". Random initialisation and fewer "
-                   f"than {FEW_TRAIN_VIEWS} training views draw a warning when training starts; the tool has no "
-                   "check for pose noise (training ends normally, and only a held-out PSNR shows it); a corrupt "
-                   "(NaN) view is caught by the NaN guard step by step.")
-    noisy = sorted((r for r in tr if r.get("pose_noise") or r.get("baseline_psnr") is None),
-                   key=lambda r: r["pose_noise"])
-    if len(noisy) >= 3 and any(b["test_psnr"] > a["test_psnr"] for a, b in itertools.pairwise(noisy)):
-        out.append("- The test PSNR is not monotonic in the pose noise ("
-                   + ", ".join(f"{100 * r['pose_noise']:g}%: {r['test_psnr']:.2f} dB" for r in noisy)
-                   + "): at this image size, step count and number of test views one run's noise is at least "
-                   "as large as these differences, so a pass or fail near the 1 dB line is not a robust ranking "
-                   "(a sweep over seeds would be needed to resolve it).")
+        parts = [f"{r['case']} {r['test_psnr']:.2f}" + (f" ± {r['test_psnr_sd']:.2f}" if r.get("test_psnr_sd") else "")
+                 + " dB" for r in tr]
+        out.append("- Training (median test PSNR, mean ± sd over seeds): " + ", ".join(parts) + ".")
+        close = [r["case"] for r in tr if r.get("outside_spread") is False]
+        if close:
+            out.append("- Verdicts within the seed spread (the pass line lies inside one sd of the seeds' "
+                       "margins, so another seed could flip them): " + ", ".join(close) + ".")
+        silent = [r["case"] for r in tr if r["result"] == "fail" and r["detection"].startswith("NOT DETECTED")]
+        out.append("- Training failures no check reports: " + (", ".join(silent) if silent else "none") + ".")
     dv = [r for r in rows if r["family"] == "divergence"]
     if dv:
         out.append("- Divergence: " + "; ".join(f"{r['case']}: {r['result']} ({r['error']})" for r in dv) + ".")

@@ -30,7 +30,7 @@ class LayoutConfig:
     plants_per_row: int = 10        # plants in each row
     plant_spacing: float = 0.4      # metres between plants along a row
     row_spacing: float = 1.6        # metres between row centre lines
-    container: str = "bag"          # "bag" (grow bags) or "pot"
+    container: str = "bag"          # "bag" (grow bags), "pot" or "none" (plants stand on the ground plane)
     plants_per_bag: int = 3         # plants sharing one grow bag
     identical_plants: bool = False  # every plant the same mesh (a hard case for SfM)
 
@@ -44,11 +44,15 @@ class PlantConfig:
     tendrils: bool = True                         # thin coiled tendrils at some nodes
     flowers: bool = True                          # small yellow flowers at upper nodes
     leaf_textures: int = 4                        # distinct procedural leaf textures
+    stem_radius: float = 0.006                    # stem radius at its base, metres (7/12 of it at the top;
+    #                                               petioles scale with it)
+    leaf_width: float = 1.0                       # blade width relative to the palmate shape (< 1: narrower,
+    #                                               e.g. 0.12 gives strap-like leaves a few pixels wide)
 
 
 @dataclasses.dataclass(frozen=True)
 class GroundConfig:
-    kind: str = "soil"        # "soil" or "cover" (white woven ground cover)
+    kind: str = "soil"        # "soil", "cover" (white woven ground cover) or "none" (no ground)
     margin: float = 4.0       # metres of ground beyond the outermost rows and row ends
     texture_tile: float = 1.0  # metres per repeat of the ground texture
 
@@ -80,6 +84,7 @@ class RenderConfig:
     sun_radius_deg: float = 2.0     # angular radius of the sun disc (soft shadows)
     supersample: int = 1            # s: s x s colour rays per pixel (anti-aliasing)
     texture_size: int = 256         # side of each procedural texture, pixels
+    background: str = "sky"         # what rays that miss show: "sky" (a gradient) or "black"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,14 +117,16 @@ def _validate(cfg: SceneConfig) -> None:
         (lay.plants_per_row >= 1, "layout.plants_per_row must be >= 1"),
         (lay.plant_spacing > 0.05, "layout.plant_spacing must be > 0.05 m"),
         (lay.row_spacing > 0.5, "layout.row_spacing must be > 0.5 m"),
-        (lay.container in ("bag", "pot"), "layout.container must be 'bag' or 'pot'"),
+        (lay.container in ("bag", "pot", "none"), "layout.container must be 'bag', 'pot' or 'none'"),
         (lay.plants_per_bag >= 1, "layout.plants_per_bag must be >= 1"),
         (pl.height[0] > 0.05, "plant.height must be > 0.05 m"),
         (pl.leaves[0] >= 1, "plant.leaves must be >= 1"),
         (pl.leaf_length[0] > 0.01, "plant.leaf_length must be > 0.01 m"),
         (3 <= pl.lobes <= 7, "plant.lobes must be between 3 and 7"),
         (1 <= pl.leaf_textures <= 16, "plant.leaf_textures must be between 1 and 16"),
-        (gr.kind in ("soil", "cover"), "ground.kind must be 'soil' or 'cover'"),
+        (0.0005 <= pl.stem_radius <= 0.05, "plant.stem_radius must be between 0.0005 and 0.05 m"),
+        (0.02 <= pl.leaf_width <= 2.0, "plant.leaf_width must be between 0.02 and 2"),
+        (gr.kind in ("soil", "cover", "none"), "ground.kind must be 'soil', 'cover' or 'none'"),
         (gr.margin >= 0, "ground.margin must be >= 0"),
         (gr.texture_tile > 0, "ground.texture_tile must be > 0"),
         (st.post_spacing >= 0, "structure.post_spacing must be >= 0"),
@@ -134,6 +141,7 @@ def _validate(cfg: SceneConfig) -> None:
         (rd.sun_radius_deg >= 0, "render.sun_radius_deg must be >= 0"),
         (1 <= rd.supersample <= 4, "render.supersample must be between 1 and 4"),
         (32 <= rd.texture_size <= 2048, "render.texture_size must be between 32 and 2048"),
+        (rd.background in ("sky", "black"), "render.background must be 'sky' or 'black'"),
     ]
     for ok, message in checks:
         if not ok:
@@ -168,8 +176,40 @@ def config_from_dict(data: dict, source: str = "<dict>") -> SceneConfig:
     return cfg
 
 
-def load_config(path: str | os.PathLike) -> SceneConfig:
-    """Read a scene TOML file; clear errors for a missing file, bad syntax or bad values."""
+# Named scenes (`ghsplat synth --preset NAME`, `preset_config`): a dict as a TOML file would give.
+PRESETS = {
+    # One thin plant (stems and strap-like leaves 1-2 cm across: a few pixels at 128x96 from
+    # half a metre) alone on a black background: no ground, container, posts, wires or tags.
+    # The case where a whole-image score hides a model that misses the subject.
+    "thin-plant": {
+        "layout": {"rows": 1, "plants_per_row": 1, "container": "none"},
+        "plant": {"height": [0.45, 0.55], "leaves": [6, 8], "leaf_length": [0.14, 0.18], "stem_radius": 0.006,
+                  "leaf_width": 0.12, "tendrils": False, "flowers": False},
+        "ground": {"kind": "none", "margin": 0.0},
+        "structure": {"posts": False, "wires": False},
+        "tags": {"enabled": False},
+        "render": {"background": "black", "shadows": False},
+    },
+}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def preset_config(name: str, changes: dict | None = None) -> SceneConfig:
+    """The named preset (PRESETS), with `changes` (a TOML-like dict) on top."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown scene preset {name!r} (known: {', '.join(sorted(PRESETS))})")
+    return config_from_dict(_merge(PRESETS[name], changes or {}), f"preset {name!r}")
+
+
+def load_config(path: str | os.PathLike, preset: str | None = None) -> SceneConfig:
+    """Read a scene TOML file (over the named preset, when given); clear errors for a missing
+    file, bad syntax or bad values."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
@@ -177,6 +217,10 @@ def load_config(path: str | os.PathLike) -> SceneConfig:
         raise FileNotFoundError(f"{path}: no such scene config file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: invalid TOML ({exc})") from None
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown scene preset {preset!r} (known: {', '.join(sorted(PRESETS))})")
+        data = _merge(PRESETS[preset], data)
     return config_from_dict(data, str(path))
 
 

@@ -61,8 +61,9 @@ def leaf_outline(theta: np.ndarray, lobes: int, lobe_depth: float, notch: float)
 
 
 def leaf_blade(length: float, lobes: int, lobe_depth: float, cup: float, droop: float,
-               wave: float, n_rings: int = 4, n_theta: int = 28) -> Mesh:
-    """A blade in its local frame: petiole junction at the origin, tip toward +y, face +z.
+               wave: float, n_rings: int = 4, n_theta: int = 28, width: float = 1.0) -> Mesh:
+    """A blade in its local frame: petiole junction at the origin, tip toward +y, face +z;
+    `width` scales it across (x): below 1 a narrower, strap-like blade of the same length.
 
     Polar rings around the blade centre; UVs are the planar (x, y) / length, shifted so the
     junction lies at (0.5, 0.04) as textures.leaf_texture expects.
@@ -74,7 +75,7 @@ def leaf_blade(length: float, lobes: int, lobe_depth: float, cup: float, droop: 
     rho = np.linspace(0, 1, n_rings + 1)[1:]
     x = rho[:, None] * radius[None] * np.sin(theta)[None]
     y = centre_y + rho[:, None] * radius[None] * np.cos(theta)[None]
-    x = np.concatenate([[0.0], x.ravel()])
+    x = np.concatenate([[0.0], x.ravel()]) * width
     y = np.concatenate([[centre_y], y.ravel()])
     # shape: cupped across, drooping toward the tip, wavy margin
     r_all = np.concatenate([[0.0], np.repeat(rho, n_theta)])

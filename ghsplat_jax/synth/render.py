@@ -6,7 +6,7 @@ then the hit is recomputed in float64 (Moller-Trumbore) for exact depth and bary
 Outputs per view (H, W leading):
 - rgb (3,) float32 in [0, 1]: texture x tint, lit by a sun (optional shadow rays, soft with
   several samples over the sun disc) and a sky dome; thin foliage is lit through from behind;
-  misses show a sky gradient.
+  misses show a sky gradient (render.background = "black": black).
 - depth float32: z along the camera axis (OpenCV), 0 where nothing is hit.
 - normal (3,) float32: world-frame unit geometric normal facing the camera, 0 where no hit.
 - instance int32: scene instance id, 0 background; semantic uint8: index into scene.CLASSES.
@@ -142,7 +142,7 @@ def _sun_visibility(scene: Scene, points, normals_sun_side, shadows: bool, sampl
 def shade(scene: Scene, origins, dirs, tri, t, bary, shadows: bool, samples: int, rng):
     """(rgb (N,3), camera-facing normals (N,3)) for traced rays."""
     rc = scene.config.render
-    rgb = sky_colour(dirs)
+    rgb = sky_colour(dirs) if rc.background == "sky" else np.zeros_like(dirs)
     normals = np.zeros_like(dirs)
     hit = np.flatnonzero(tri >= 0)
     if hit.size == 0:

@@ -145,7 +145,8 @@ def _plant(rng: np.random.Generator, cfg: SceneConfig, leaf_materials: list[str]
     lean = rng.normal(0, 0.03, 2)
     wobble = np.cumsum(rng.normal(0, 0.008, (k, 2)), axis=0)
     stem = np.column_stack([lean[0] * t + wobble[:, 0], lean[1] * t + wobble[:, 1], height * t])
-    parts.append((geo.tube(stem, np.linspace(0.006, 0.0035, k), sides=6, uv_scale=4.0), "stem", (1, 1, 1)))
+    r = pc.stem_radius
+    parts.append((geo.tube(stem, np.linspace(r, r * 7 / 12, k), sides=6, uv_scale=4.0), "stem", (1, 1, 1)))
 
     def stem_at(s):
         return np.array([np.interp(s, t, stem[:, i]) for i in range(3)])
@@ -162,11 +163,11 @@ def _plant(rng: np.random.Generator, cfg: SceneConfig, leaf_materials: list[str]
         out = np.array([np.cos(azimuth), np.sin(azimuth), 0])
         tp = np.linspace(0, 1, 5)[:, None]
         petiole = node + plen * (out * np.cos(rise) * tp + np.array([0, 0, np.sin(rise)]) * (tp - 0.45 * tp ** 2))
-        parts.append((geo.tube(petiole, np.linspace(0.0028, 0.002, 5), sides=4, uv_scale=4.0), "stem",
+        parts.append((geo.tube(petiole, np.linspace(r * 0.0028 / 0.006, r / 3, 5), sides=4, uv_scale=4.0), "stem",
                       (1, 1, 1)))
         # blade: tip pointing outward (local +y -> out), pitched down, slight roll
         blade = geo.leaf_blade(size, cfg.plant.lobes, rng.uniform(0.08, 0.22), cup=rng.uniform(0.1, 0.45),
-                               droop=rng.uniform(0.1, 0.5), wave=rng.uniform(0.0, 0.03))
+                               droop=rng.uniform(0.1, 0.5), wave=rng.uniform(0.0, 0.03), width=pc.leaf_width)
         rot = (geo.rotation_z(azimuth - np.pi / 2) @ geo.rotation_x(-np.deg2rad(rng.uniform(-5, 35)))
                @ geo.rotation_y(rng.normal(0, 0.2)))
         tint = np.clip(rng.normal(1.0, 0.07, 3) * [1.0, 1.0 + rng.normal(0, 0.04), 1.0], 0.7, 1.3)
@@ -220,15 +221,16 @@ def generate_scene(config: SceneConfig | None = None) -> Scene:
     # ground
     m = cfg.ground.margin
     make_ground = tex.soil_texture if cfg.ground.kind == "soil" else tex.cover_texture
-    ground_mat = b.material("ground", lambda: make_ground(rng_tex, size * 2))
-    lo = np.array([-m - 0.5, ys[0] - lay.row_spacing / 2 - m])
-    hi = np.array([row_len + m + 0.5, ys[-1] + lay.row_spacing / 2 + m])
-    b.add(geo.ground_grid(lo, hi, 0.5, cfg.ground.texture_tile), ground_mat, b.instance("ground", "ground"))
+    if cfg.ground.kind != "none":
+        ground_mat = b.material("ground", lambda: make_ground(rng_tex, size * 2))
+        lo = np.array([-m - 0.5, ys[0] - lay.row_spacing / 2 - m])
+        hi = np.array([row_len + m + 0.5, ys[-1] + lay.row_spacing / 2 + m])
+        b.add(geo.ground_grid(lo, hi, 0.5, cfg.ground.texture_tile), ground_mat, b.instance("ground", "ground"))
 
     # plants: one rng per plant from the plant stream (or a single one when identical)
     plant_seeds = np.random.SeedSequence(int(rng_plants.integers(2 ** 32))).spawn(lay.rows * lay.plants_per_row)
     template = None
-    container_top = BAG_SIZE[1] if lay.container == "bag" else POT_SIZE[2] - 0.02
+    container_top = {"bag": BAG_SIZE[1], "pot": POT_SIZE[2] - 0.02}.get(lay.container, 0.0)
     for row in rows:
         for p in range(lay.plants_per_row):
             if lay.identical_plants:
@@ -257,7 +259,7 @@ def generate_scene(config: SceneConfig | None = None) -> Scene:
                 for j in range(n):  # planting holes showing the substrate
                     hx = (first + j + 0.5) * lay.plant_spacing
                     b.add(geo.disc([hx, row.y, BAG_SIZE[1] + 0.001], 0.045, segments=12), "substrate", inst)
-    else:
+    elif lay.container == "pot":
         b.material("pot", lambda: tex.plastic_texture(rng_tex, size, [0.16, 0.16, 0.17]))
         b.material("substrate", lambda: tex.soil_texture(rng_tex, size))
         r0, r1, h = POT_SIZE
