@@ -28,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-surfels", type=int, help="cap on the surfel count for --strategy budget or mcmc")
     p.add_argument("--seed", type=int)
     p.add_argument("--white", action="store_true", help="composite and render on a white background")
+    p.add_argument("--pose-refine", action="store_true",
+                   help="learn a pose correction per training view (pose_refine; rates: --set pose_lr_rot=..., "
+                        "pose_lr_trans=..., pose_refine_from=...); writes OUT/pose_corrections.json")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any TrainConfig field, e.g. --set lambda_dist=100 (TOML value syntax)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz with OUT/config.toml")
@@ -71,6 +74,8 @@ def resolve_config(args):
         overrides["strategy.max_surfels"] = args.max_surfels
     if args.white:
         overrides["background"] = (1.0, 1.0, 1.0)
+    if args.pose_refine:
+        overrides["pose_refine"] = True
     if args.no_progress:
         overrides["progress"] = False
     missing = [name for name in missing if name not in overrides]

@@ -226,8 +226,18 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     if old:
         seconds, steps = old.get("train_seconds"), old.get("steps")
     dataset = rd.load_training_data(config)
+    extra = None
+    pose_file = run_dir / rd.POSE_NAME
+    if pose_file.is_file():  # as train_and_evaluate: training views at their refined poses
+        import json
+
+        from ghsplat_jax.train.pose import refine_views
+
+        pose = json.loads(pose_file.read_text())
+        extra = {"pose_refinement": pose["summary"]}
+        dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, pose["views"], pose["scene_extent"]))
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
-                    train_peak_rss_mb=meta.get("peak_rss_mb"))
+                    train_peak_rss_mb=meta.get("peak_rss_mb"), extra=extra)
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
@@ -254,6 +264,12 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     # Where and with what code it trained (the training seconds depend on both), from this process.
     extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
                                                                    "code_revision": code_revision()}
+    if result.pose is not None:  # the training views are evaluated at the poses the run refined them to
+        from ghsplat_jax.train.pose import refine_views
+
+        extra["pose_refinement"] = result.pose["summary"]
+        dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, result.pose["views"],
+                                                                  result.pose["scene_extent"]))
     return _evaluate(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps,
                      extra=extra) | {"finished": True}
 

@@ -91,6 +91,17 @@ class TrainConfig:
     #                                     (mcmc and auto 0.01, others 0)
     lambda_scale_reg: float = -1.0      # L1 on scales (mean of exp(log_scales)); -1: the strategy's default (same)
 
+    # --- pose refinement ----------------------------------------------------------------------
+    # Learn a correction of every training view's pose (train/pose.py): an so(3) rotation and a
+    # translation per view, applied to its world_to_cam inside the step, each view with its own
+    # Adam moments, updated on the steps that train it. Test and held-out views keep their poses.
+    # The run writes pose_corrections.json and warns about views it moved far. Off: the step is
+    # the one without it. On: the step is always the one program (step_threads 1).
+    pose_refine: bool = False
+    pose_lr_rot: float = 1e-3           # radians per Adam step of a view's rotation
+    pose_lr_trans: float = 1e-3         # x scene extent per Adam step of a view's translation
+    pose_refine_from: int = 500         # corrections stay at zero before this step (the model is noise before)
+
     # --- validation and stopping ----------------------------------------------------------
     # Every val_hold_every-th training view is held out of training and rendered every val_every
     # steps (0: no validation, every training view trains). The run stops itself when
@@ -227,6 +238,12 @@ class TrainConfig:
             raise ConfigError(f"downscale must be positive, got {self.downscale}")
         if not self.pose_noise >= 0:
             raise ConfigError(f"pose_noise must be >= 0 (a fraction of the scene extent), got {self.pose_noise}")
+        if not (self.pose_lr_rot >= 0 and self.pose_lr_trans >= 0 and self.pose_refine_from >= 0):
+            raise ConfigError("pose_lr_rot, pose_lr_trans and pose_refine_from must be >= 0, got "
+                              f"{self.pose_lr_rot}, {self.pose_lr_trans}, {self.pose_refine_from}")
+        if self.pose_refine and self.step_threads > 1:
+            raise ConfigError(f"pose_refine runs the one-program step: step_threads must be 0 or 1, got "
+                              f"{self.step_threads}")
         if not self.random_init_scale > 0:
             raise ConfigError(f"random_init_scale must be positive, got {self.random_init_scale}")
         if not isinstance(self.raster, RasterConfig):
@@ -248,6 +265,7 @@ class TrainConfig:
             dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
             opacity_reset_every=s(self.opacity_reset_every, 100), res_until=s(self.res_until, 0),
+            pose_refine_from=s(self.pose_refine_from, 0),
             strategy=dataclasses.replace(self.strategy, contrib_prune_every=s(self.strategy.contrib_prune_every)
                                          if self.strategy.contrib_prune_every else 0))
 

@@ -133,8 +133,8 @@ def densify_and_prune(state: TrainState, key: jax.Array, max_new: jax.Array, pru
     # Fresh Adam moments for every new or changed row (the reference's zero-initialised state).
     opt_state = optim.reset_rows(state.opt_state, born | split | prune)
     zeros = jnp.zeros(cap, jnp.float32)
-    new_state = TrainState(params=new_params, active=active, opt_state=opt_state, grad_accum=zeros,
-                           grad_count=zeros, max_radii=zeros, step=state.step)
+    new_state = dataclasses.replace(state, params=new_params, active=active, opt_state=opt_state, grad_accum=zeros,
+                                    grad_count=zeros, max_radii=zeros)
     counts = {
         "candidates": jnp.sum(cand), "cloned": jnp.sum(clone), "split": jnp.sum(split),
         "pruned": jnp.sum(prune), "skipped": jnp.sum(cand) - jnp.sum(chosen),

@@ -4,12 +4,13 @@
     RUN/stats.jsonl         one JSON line per training step
     RUN/checkpoint.npz      the training state, resumable (train/checkpoint.py)
     RUN/point_cloud.ply     the final surfels (present once the run has finished training)
+    RUN/pose_corrections.json  per training view, the pose correction learnt (runs with pose_refine)
     RUN/metrics.json        evaluation summary: per split psnr/l1/ssim, num_gaussians, ...
     RUN/per_view.json       evaluation of every view
     RUN/renders/test/       rgb, depth and normal images of the test views
     RUN/snapshots/step_N/   the same evaluation files for an unfinished run's checkpoint
 
-The trainer writes the first four; evaluation (eval/) reads a run through `load_run` and
+The trainer writes the first four (five with pose refinement); evaluation (eval/) reads a run through `load_run` and
 writes the rest through `write_metrics`, so neither needs the other.
 """
 
@@ -26,6 +27,7 @@ STATS_NAME = "stats.jsonl"
 TEST_CURVE_NAME = "test_curve.jsonl"
 CHECKPOINT_NAME = "checkpoint.npz"
 PLY_NAME = "point_cloud.ply"
+POSE_NAME = "pose_corrections.json"
 METRICS_NAME = "metrics.json"
 PER_VIEW_NAME = "per_view.json"
 TEST_RENDERS = Path("renders") / "test"
@@ -115,13 +117,16 @@ def load_training_data(config):
 
 
 def load_run_checkpoint(path, optimizers: dict):
-    """(TrainState, metadata) of a run's checkpoint (the pool size from the file)."""
+    """(TrainState, metadata) of a run's checkpoint (the pool size, and the number of pose-refined
+    views, from the file)."""
     from ghsplat_jax.train import checkpoint as ckpt
+    from ghsplat_jax.train.pose import init_pose
     from ghsplat_jax.train.state import empty_params, new_state
 
     meta = ckpt.read_meta(path)
+    pose = init_pose(meta["pose_views"], 1.0) if meta.get("pose_views") else None
     template = new_state(empty_params(meta["capacity"], meta["sh_degree"]), np.zeros(meta["capacity"], bool),
-                         optimizers)
+                         optimizers, pose)
     return ckpt.load_checkpoint(path, template)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.surfels import Surfels
 from ghsplat_jax.raster.render import capacity_bucket
+from ghsplat_jax.train.pose import PoseState
 
 INACTIVE_LOGIT = -20.0  # sigmoid ~ 2e-9: an empty slot is invisible even if it were drawn
 
@@ -26,6 +27,7 @@ class TrainState:
     grad_count: jax.Array  # (cap,) number of views in which the surfel was visible
     max_radii: jax.Array   # (cap,) largest screen radius (px) since the last densification
     step: jax.Array        # () int32: steps completed
+    pose: PoseState | None = None  # per-view pose corrections (TrainConfig.pose_refine), else None
 
     @property
     def capacity(self) -> int:
@@ -153,7 +155,7 @@ def pad_params(s: Surfels, capacity: int) -> tuple[Surfels, np.ndarray]:
     return padded, active
 
 
-def new_state(params: Surfels, active, optimizers: dict) -> TrainState:
+def new_state(params: Surfels, active, optimizers: dict, pose: PoseState | None = None) -> TrainState:
     from ghsplat_jax.train import optim
 
     params = jax.tree_util.tree_map(jnp.asarray, params)
@@ -166,6 +168,7 @@ def new_state(params: Surfels, active, optimizers: dict) -> TrainState:
         grad_count=jnp.zeros(cap, jnp.float32),
         max_radii=jnp.zeros(cap, jnp.float32),
         step=jnp.zeros((), jnp.int32),
+        pose=pose,
     )
 
 
@@ -188,7 +191,8 @@ def grow(state: TrainState, capacity: int) -> TrainState:
     empty = empty_params(extra, state.params.sh_degree)
     params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, jnp.asarray(b)], 0), state.params, empty)
     zeros = lambda leaf: jnp.concatenate([leaf, jnp.zeros((extra,) + leaf.shape[1:], leaf.dtype)], 0)  # noqa: E731
-    return dataclasses.replace(_map_rows(dataclasses.replace(state, params=None), old, zeros), params=params)
+    rest = _map_rows(dataclasses.replace(state, params=None, pose=None), old, zeros)
+    return dataclasses.replace(rest, params=params, pose=state.pose)
 
 
 def compact(state: TrainState, capacity: int) -> TrainState:
@@ -201,7 +205,9 @@ def compact(state: TrainState, capacity: int) -> TrainState:
     if capacity < len(live):
         raise ValueError(f"{len(live)} live surfels do not fit a pool of capacity {capacity}")
     rows = jnp.asarray(np.concatenate([live, free])[:min(capacity, state.capacity)])
-    return grow(_map_rows(state, state.capacity, lambda leaf: leaf[rows]), capacity)
+    # The pose corrections have a row per view, not per slot: they stay as they are.
+    moved = _map_rows(dataclasses.replace(state, pose=None), state.capacity, lambda leaf: leaf[rows])
+    return grow(dataclasses.replace(moved, pose=state.pose), capacity)
 
 
 def compiles_cost_more_than_slots() -> bool:

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from ghsplat_jax.core.camera import Camera
 from ghsplat_jax.train import losses, optim
+from ghsplat_jax.train import pose as pose_mod
 from ghsplat_jax.train.densify import accumulate_stats
 from ghsplat_jax.train.state import TrainState, render_params
 
@@ -103,16 +104,55 @@ def _all_finite(tree, active) -> jax.Array:
     return jnp.all(jnp.stack([leaf_ok(a) for a in jax.tree_util.tree_leaves(tree)]))
 
 
+@dataclasses.dataclass(frozen=True)
+class PoseRates:
+    """Static pose-refinement settings (hashable): Adam's rates and the first step that refines."""
+
+    rot: float
+    trans: float
+    start: int
+
+    @classmethod
+    def from_config(cls, c) -> "PoseRates | None":
+        return cls(c.pose_lr_rot, c.pose_lr_trans, c.pose_refine_from) if c.pose_refine else None
+
+
 def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: int, height: int, optimizers, weights,
-               raster_cfg, render_fn):
+               raster_cfg, render_fn, view=None, pose_rates: PoseRates | None = None):
     """One step on one view; returns (new state, metrics). Rows of free slots get zero
-    gradients; `finite` is False when the loss, a gradient or a live parameter is not finite."""
+    gradients; `finite` is False when the loss, a gradient or a live parameter is not finite.
+    A state with pose corrections (`state.pose`) refines training view `view`'s pose as well."""
+    if state.pose is not None:
+        return pose_step(state, image, K, world_to_cam, means_lr, view, width=width, height=height,
+                         optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn,
+                         rates=pose_rates)
     camera = Camera(K, world_to_cam, width, height)
     probe = jnp.zeros((state.capacity, 2), jnp.float32)
     grad_fn = jax.value_and_grad(_loss, argnums=(0, 1), has_aux=True)
     (loss, aux), (grads, probe_grad) = grad_fn(state.params, probe, state.active, image, camera, state.step,
                                                 weights, raster_cfg, render_fn)
     return apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+
+
+def pose_step(state: TrainState, image, K, world_to_cam, means_lr, view, *, width: int, height: int, optimizers,
+              weights, raster_cfg, render_fn, rates: PoseRates):
+    """`train_step` that also differentiates through view `view`'s pose correction and takes one
+    Adam step of that correction alone (from step `rates.start` on)."""
+    pose = state.pose
+    probe = jnp.zeros((state.capacity, 2), jnp.float32)
+
+    def loss_of(params, probe, delta):
+        camera = Camera(K, pose_mod.correct(world_to_cam, delta, pose.extent), width, height)
+        return _loss(params, probe, state.active, image, camera, state.step, weights, raster_cfg, render_fn)
+
+    grad_fn = jax.value_and_grad(loss_of, argnums=(0, 1, 2), has_aux=True)
+    (loss, aux), (grads, probe_grad, delta_grad) = grad_fn(state.params, probe, pose.delta[view])
+    new, metrics = apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+    pose = pose_mod.update_view(pose, view, delta_grad, rates.rot, rates.trans, state.step >= rates.start)
+    d = pose.delta[view]
+    metrics = metrics | dict(finite=metrics["finite"] & jnp.all(jnp.isfinite(d)),
+                             pose_deg=jnp.degrees(jnp.linalg.norm(d[:3])), pose_pct=100.0 * jnp.linalg.norm(d[3:]))
+    return dataclasses.replace(new, pose=pose), metrics
 
 
 def apply_gradients(state: TrainState, loss, aux, grads, probe_grad, means_lr, optimizers, width: int, height: int):

@@ -26,12 +26,14 @@ from ghsplat_jax.host_memory import reuse_freed_memory
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
+from ghsplat_jax.train import pose as pose_mod
 from ghsplat_jax.train.config import TrainConfig, save_config
 from ghsplat_jax.train.resolution import box_downscale, factor_at, scale_intrinsics, spectrum_schedule
 from ghsplat_jax.train.run_dir import (
     CHECKPOINT_NAME,
     CONFIG_NAME,
     PLY_NAME,
+    POSE_NAME,
     STATS_NAME,
     TEST_CURVE_NAME,
     load_run_checkpoint,
@@ -69,6 +71,7 @@ class TrainResult:
     strategy_state: dict = dataclasses.field(default_factory=dict)  # the strategy's own state at the end
     finished: bool = False  # the schedule ran out or the stop rule stopped it (not an `until` pause)
     stop: dict | None = None  # the stop rule's state (runs with validation): best step, why it stopped
+    pose: dict | None = None  # pose refinement: what pose_corrections.json holds
 
     @property
     def surfels(self):
@@ -183,6 +186,7 @@ class TrainingSession:
             log.warning("%s: too few training views (%d) to hold some out for validation; the stop rule reads the "
                         "training views' PSNR instead", config.data, len(dataset.train))
             self.val_views = list(dataset.train)
+        self.view_names = [v.name for v in train_views]
         self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(
             train_views, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
         # Full resolution by res_until, and for the last two thirds of a short run at least.
@@ -228,8 +232,12 @@ class TrainingSession:
         self.initial_count = init.num
         self.sstate = self.strategy.init_state(init.num)
         params, active = pad_params(init, cap)
-        self.state = new_state(params, active, self.optimizers)
+        self.state = new_state(params, active, self.optimizers, self._fresh_pose())
         self.pair_capacity = c.raster.pair_capacity or self._measure_pairs()
+
+    def _fresh_pose(self):
+        """Zero pose corrections, one per training view (None without pose refinement)."""
+        return pose_mod.init_pose(len(self.view_names), self.extent) if self.config.pose_refine else None
 
     def _measure_pairs(self) -> int:
         """Size the pair buffer from an eager render of the first view (automatic capacity)."""
@@ -256,6 +264,13 @@ class TrainingSession:
         if saved is None:  # a checkpoint from before strategies kept state: theirs is a function of the config
             log.info("%s: no strategy state saved; rebuilt from the config", path)
         self.sstate = template if saved is None else saved
+        has = self.state.pose is not None
+        if has != self.config.pose_refine or (has and self.state.pose.num_views != len(self.view_names)):
+            log.warning("%s: the checkpoint's pose corrections (%s) do not fit this run's pose_refine = %s and %d "
+                        "training views; %s", path, self.state.pose.num_views if has else "none",
+                        self.config.pose_refine, len(self.view_names),
+                        "starting them from zero" if self.config.pose_refine else "dropping them")
+            self.state = dataclasses.replace(self.state, pose=self._fresh_pose())
         log.info("resumed from %s at step %d", path, int(self.state.step))
 
     def save(self, seconds: float):
@@ -263,9 +278,22 @@ class TrainingSession:
         extra = dict(step=int(s.step), capacity=s.capacity, sh_degree=s.params.sh_degree,
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
                      initial_count=self.initial_count, peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb),
-                     config=self.config.to_dict(), stop_rule=self.stop_state)
+                     config=self.config.to_dict(), stop_rule=self.stop_state,
+                     pose_views=s.pose.num_views if s.pose is not None else 0)
         extra.update(self.strategy.meta(self.sstate))
         ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra, aux=self.sstate)
+        if s.pose is not None:
+            from ghsplat_jax.io_utils import write_json
+
+            write_json(self.out / POSE_NAME, self.pose_report())
+
+    def pose_report(self) -> dict | None:
+        """pose_corrections.json: the scene extent, each training view's correction, a summary."""
+        if self.state.pose is None:
+            return None
+        rows = pose_mod.corrections_report(self.state.pose, self.view_names)
+        return {"scene_extent": self.extent, "step": int(self.state.step),
+                "summary": pose_mod.corrections_summary(rows), "views": rows}
 
     def context(self) -> StrategyContext:
         return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
@@ -350,7 +378,8 @@ class TrainingSession:
         while True:
             rcfg = step_raster_config(c, self.pair_capacity, step)
             lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
-            new, m = self.step_fn(self.state, images[v], Ks[v], self.w2cs[v], lr, rcfg, width, height)
+            view = {} if self.state.pose is None else {"view": jnp.int32(v)}
+            new, m = self.step_fn(self.state, images[v], Ks[v], self.w2cs[v], lr, rcfg, width, height, **view)
             m = jax.device_get(m)
             if int(m["overflow"]) <= 0:
                 break
@@ -549,8 +578,12 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
             log.info("end of training: %s", end_info)
     total = seconds()
     session.save(total)
+    pose = session.pose_report()
+    if pose is not None and finished:
+        pose["summary"]["warnings"] = pose_mod.warn_large(pose["views"])
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count,
-                         jax.device_get(session.sstate), finished, session.stop_state if config.val_every else None)
+                         jax.device_get(session.sstate), finished, session.stop_state if config.val_every else None,
+                         pose)
     if finished:
         from ghsplat_jax.data.ply import save_ply
 
