@@ -12,8 +12,8 @@ compiles a file repeats cheap.
 Two suites: `--fast` (`make test`) deselects tests marked `slow` (`-m "not slow"`) and does not
 start the files whose every test is slow (a module-level `pytestmark = pytest.mark.slow`);
 without it (`make test-all`) every test runs. The fast suite also sets GHSPLAT_SUITE=fast for
-the files that scale a search down there (the reader fuzzing: fewer examples). `--list` prints what would run without running it
-(add `--collect-only -q` instead to see each file's tests).
+the files that scale a search down there (the reader fuzzing: fewer examples). `--list` prints
+what would run without running it (add `--collect-only -q` instead to see each file's tests).
 
     python tests/run_suite.py [--fast] [--list] [pytest args...]   # other args go to every file's pytest
 """

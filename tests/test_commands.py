@@ -47,7 +47,8 @@ def test_render_reproduces_a_datasets_views(scene, tmp_path):
         rgb, _ = read_image(tmp_path / f"view_{i:03d}_rgb.png")
         truth, _ = read_image(data / "test" / f"view_{i:03d}.png")
         assert rgb.shape == (H, W, 3) and np.abs(rgb - truth).max() <= 1.5 / 255
-        depth, alpha = read_pixels(tmp_path / f"view_{i:03d}_depth.exr"), read_image(tmp_path / f"view_{i:03d}_alpha.png")[0]
+        depth = read_pixels(tmp_path / f"view_{i:03d}_depth.exr")
+        alpha = read_image(tmp_path / f"view_{i:03d}_alpha.png")[0]
         assert depth.shape == (H, W) and depth.dtype == np.float32
         covered = alpha[..., 0] > 0.5
         assert covered.any() and np.all((depth[covered] > 2.0) & (depth[covered] < 5.0))  # cameras at 3.5 m
@@ -56,7 +57,8 @@ def test_render_reproduces_a_datasets_views(scene, tmp_path):
 def test_render_from_a_look_at_camera_measures_depth_and_colour(tmp_path):
     """One large surfel facing the camera 3 m away: centre depth 3, its colour, opaque."""
     quat = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0]  # normal +z turned to -y, toward the camera
-    s = gs.make_surfels([[0.0, 0.0, 0.0]], [quat], [[0.0, 0.0]], [8.0], [(np.array([0.8, 0.3, 0.1]) - 0.5) / 0.28209479])
+    colour = (np.array([0.8, 0.3, 0.1]) - 0.5) / 0.28209479
+    s = gs.make_surfels([[0.0, 0.0, 0.0]], [quat], [[0.0, 0.0]], [8.0], [colour])
     ply = gs.save_ply(s, tmp_path / "one.ply")
     out = tmp_path / "out"
     assert cli.main(["render", str(ply), "--out", str(out), "--eye", "0", "-3", "0", "--size", "32x24",
@@ -164,7 +166,8 @@ def test_quick_demo_writes_every_stage(tmp_path):
     assert loc["summary"]["frames"] == 6
     assert read_pixels(out / "views" / "greenhouse_rgb.png").shape == (320, 480, 3)
     report = (out / "report.md").read_text()
-    assert f"| surfels | {metrics['num_gaussians']} |" in report and "| training steps | 200 of the 2DGS schedule (changed: none) |" in report
+    assert f"| surfels | {metrics['num_gaussians']} |" in report
+    assert "| training steps | 200 of the 2DGS schedule (changed: none) |" in report
 
 
 def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys):
@@ -174,7 +177,8 @@ def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys
 
     (tmp_path / "test_ok.py").write_text("def test_ok():\n    pass\n")
     (tmp_path / "test_bad.py").write_text("def test_bad():\n    assert False\n")
-    (tmp_path / "test_crash.py").write_text("import os, signal\n\ndef test_crash():\n    os.kill(os.getpid(), signal.SIGSEGV)\n")
+    (tmp_path / "test_crash.py").write_text(
+        "import os, signal\n\ndef test_crash():\n    os.kill(os.getpid(), signal.SIGSEGV)\n")
     files = sorted(tmp_path.glob("test_*.py"))
     assert run(files, ["-q", "-p", "no:faulthandler"], tmp_path) == 1
     out = capsys.readouterr().out

@@ -11,8 +11,9 @@ error is; as a sampling weight, not a threshold, it does not depend on the image
 Growth stops by a rate-distortion rule. After each validation check (the trainer renders views
 held out of training), the gain in validation PSNR since the previous check is divided by the
 growth of the count in doublings; when a doubling buys less than `min_gain_db`, the count is
-frozen for the rest of the run (checks while training runs at reduced resolution do not count) (relocation and noise go on). `max_surfels` is a safety ceiling
-only (0: one surfel per pixel of a training image x `ceiling_per_pixel`).
+frozen for the rest of the run (checks while training runs at reduced resolution do not
+count) (relocation and noise go on). `max_surfels` is a safety ceiling only (0: one surfel
+per pixel of a training image x `ceiling_per_pixel`).
 """
 
 from __future__ import annotations
