@@ -35,7 +35,7 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 
-# One pytest process per test file (tests/run_suite.py says why), then one summary.
+# One pytest process per test file (tests/run_suite.py says why), two at a time, longest first, then one summary.
 # `--fast` deselects the tests marked `slow` and skips files that are slow throughout.
 test: lint
 	$(BIN)/python tests/run_suite.py --fast

@@ -42,7 +42,8 @@ def test_sh_colour_and_gradients_match_the_basis_contraction():
     """The planes-and-hand-written-gradient colour equals basis . coefficients, with autodiff's
     gradients, at every degree and with unused higher bands in sh_rest."""
     r = np.random.default_rng(2)
-    dc, rest = jnp.asarray(r.normal(size=(2, 7, 3)), jnp.float32), jnp.asarray(r.normal(size=(2, 7, 15, 3)), jnp.float32)
+    dc = jnp.asarray(r.normal(size=(2, 7, 3)), jnp.float32)
+    rest = jnp.asarray(r.normal(size=(2, 7, 15, 3)), jnp.float32)
     d = r.normal(size=(2, 7, 3))
     dirs = jnp.asarray(d / np.linalg.norm(d, axis=-1, keepdims=True), jnp.float32)
     g = jnp.asarray(r.normal(size=(2, 7, 3)), jnp.float32)

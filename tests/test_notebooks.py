@@ -54,7 +54,8 @@ def _kernel_dir(tmp_path: Path) -> Path:
 def test_notebook_runs(path, tmp_path, monkeypatch):
     nbformat = pytest.importorskip("nbformat", reason="notebook tests need nbformat (pip install -e '.[test]')")
     nbclient = pytest.importorskip("nbclient", reason="notebook tests need nbclient (pip install -e '.[test]')")
-    pytest.importorskip("ipykernel", reason="notebook tests need a Jupyter kernel: ipykernel (pip install -e '.[test]')")
+    pytest.importorskip("ipykernel",
+                        reason="notebook tests need a Jupyter kernel: ipykernel (pip install -e '.[test]')")
     from nbclient.exceptions import CellExecutionError, CellTimeoutError, DeadKernelError
 
     monkeypatch.setenv("GHSPLAT_QUICK", "1")

@@ -34,7 +34,8 @@ def test_viewer_variant_and_3dgs_files(tmp_path):
 @pytest.mark.parametrize("content, message", [
     (b"hello world\n", "not a PLY"),
     (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n", "truncated header"),
-    (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n" + bytes(12), "missing properties"),
+    (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n" + bytes(12),
+     "missing properties"),
 ])
 def test_malformed_files_name_the_file(tmp_path, content, message):
     path = tmp_path / "bad.ply"

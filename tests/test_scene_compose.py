@@ -112,12 +112,14 @@ def test_compose_command_writes_scene_and_tags(segments, capsys):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("[[rows]]\nsource = 'nothere.ply'\n[[rows]]\nname='x'\nsource = 'gone.ply'\n", "missing files.*gone.ply.*nothere.ply"),
+    ("[[rows]]\nsource = 'nothere.ply'\n[[rows]]\nname='x'\nsource = 'gone.ply'\n",
+     "missing files.*gone.ply.*nothere.ply"),
     ("[[rows]]\nname='a'\nsource='seg.ply'\n[[rows]]\nname='b'\nsource='seg.ply'\nposition=[1.0, 0.1, 0.0]\n",
      "overlap"),
     ("[[rows]]\nsource='seg.ply'\nscale=-1\n", "scale must be positive"),
     ("[[rows]]\nsource='seg.ply'\ncolour=[1,2,3]\n", "unknown keys"),
-    ("[[markers]]\nid=1\nsize=0.1\nposition=[0,0,0]\n[[markers]]\nid=1\nsize=0.1\nposition=[1,0,0]\n", "duplicate marker"),
+    ("[[markers]]\nid=1\nsize=0.1\nposition=[0,0,0]\n[[markers]]\nid=1\nsize=0.1\nposition=[1,0,0]\n",
+     "duplicate marker"),
     ("[[rows]]\nsource='seg.ply'\ncrop_box=[[5,5,5],[6,6,6]]\n", "removed all"),
     ("rows = [\n", "invalid TOML"),
 ])

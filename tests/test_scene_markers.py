@@ -88,5 +88,6 @@ def test_rendered_markers_are_detected_with_accurate_pose(tag_id, backing):
         assert ok and error < 0.01, (angle, error)
         R = cv2.Rodrigues(rvec)[0]
         rot_error = np.degrees(np.arccos(np.clip((np.trace(R.T @ truth[:3, :3]) - 1) / 2, -1, 1)))
-        print(f"tag {tag_id} at {angle:.0f} deg: position error {100 * error:.2f}% of distance, rotation {rot_error:.1f} deg")
+        print(f"tag {tag_id} at {angle:.0f} deg: position error {100 * error:.2f}% of distance, "
+              f"rotation {rot_error:.1f} deg")
         assert rot_error < 10.0  # loose: the tilt of a small planar tag seen head-on is ill-conditioned

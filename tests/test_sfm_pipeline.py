@@ -185,7 +185,8 @@ def test_sift_peak_threshold_flag():
     command.add_arguments(parser)
     base = ["--images", "in", "--out", "out"]
     assert command.build_options(parser.parse_args(base)).sift_peak_threshold == SfmOptions().sift_peak_threshold
-    assert command.build_options(parser.parse_args(base + ["--sift-peak-threshold", "0.002"])).sift_peak_threshold == 0.002
+    options = command.build_options(parser.parse_args(base + ["--sift-peak-threshold", "0.002"]))
+    assert options.sift_peak_threshold == 0.002
     with pytest.raises(SfmError, match="sift_peak_threshold"):
         SfmOptions(sift_peak_threshold=0.0).validate()
 

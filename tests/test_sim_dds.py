@@ -29,7 +29,8 @@ NODE = textwrap.dedent("""
     r = box_room_renderer()
     node = dds_node.SimNode(None, domain_id={domain},
                             camera_renderer=camera_sensor.CameraRenderer(render_fn=r),
-                            lidar=lidar.Lidar(beams.get_pattern("vlp16").replace(columns=360), face_width=64, render_fn=r))
+                            lidar=lidar.Lidar(beams.get_pattern("vlp16").replace(columns=360), face_width=64,
+                                              render_fn=r))
     print("ready", flush=True)
     stop = {stop!r}
     node.spin(duration=90.0, should_stop=lambda: os.path.exists(stop))

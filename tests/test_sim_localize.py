@@ -19,7 +19,8 @@ from ghsplat_jax.sim import robot
 @pytest.fixture(scope="module")
 def tag_scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("tags")
-    parts = [surfaces.box((-1, -1.5, -0.02), (4, 1.5, 0.0), 0.1, surfaces.constant_colour((0.5, 0.45, 0.4)), faces=("+z",))]
+    parts = [surfaces.box((-1, -1.5, -0.02), (4, 1.5, 0.0), 0.1, surfaces.constant_colour((0.5, 0.45, 0.4)),
+                          faces=("+z",))]
     tags = []
     for i, y in enumerate((-0.3, 0.3)):
         s, t = markers.marker_surfels(i, 0.2, markers.tag_pose((3.0, y, 0.45), facing=(-1, 0, 0)), subdiv=3)

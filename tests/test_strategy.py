@@ -45,7 +45,8 @@ def test_relocation_values_match_the_binomial_sum_and_keep_a_single_surfel():
         new_op, new_ls = strat.relocation_values(op, ls, jnp.full(5, n))
         o2 = np.asarray(new_op, np.float64)
         # 3DGS-MCMC's double sum with 1/(k+1) (the 2D area integral of the k+1-th power of a Gaussian)
-        denom = sum(math.comb(i - 1, k) * (-1) ** k * o2 ** (k + 1) / (k + 1) for i in range(1, n + 1) for k in range(i))
+        denom = sum(math.comb(i - 1, k) * (-1) ** k * o2 ** (k + 1) / (k + 1)
+                    for i in range(1, n + 1) for k in range(i))
         np.testing.assert_allclose(np.asarray(strat.relocation_integral(new_op, jnp.full(5, n))), denom, rtol=1e-4)
         # N stacked copies cover the plane like the original: s'^2 I(o', N) = s^2 o
         area = np.exp(2 * np.asarray(new_ls[:, 0], np.float64)) * denom
@@ -237,7 +238,8 @@ def test_count_fraction_resolves_from_the_default_run_and_errors_before_it(tmp_p
     exp = load_experiment(f)
     ref, run = exp.runs
     assert run.count_fraction == 0.2 and run.count_of == "default" and ref.count_fraction is None
-    with pytest.raises(ConfigError, match="s/mcmc_20: count_fraction = 0.2 of variant 'default', which has not finished"):
+    with pytest.raises(ConfigError,
+                       match="s/mcmc_20: count_fraction = 0.2 of variant 'default', which has not finished"):
         resolve_count(run, exp.runs)
     assert "has not finished" in run_one(run, exp.runs)  # the runner reports it as that run's failure
     # The reference's folder lost between sessions: its final count comes from the last report.
@@ -269,7 +271,8 @@ def test_runner_takes_a_lost_references_count_from_the_report(tmp_path, monkeypa
     (exp.results / "results.json").write_text(json.dumps({"rows": [{"scene": "s", "variant": "default",
                                                                       "num_gaussians": 10000}]}))
     caps = []
-    monkeypatch.setattr(runner, "train_and_evaluate", lambda config, out_dir, resume: caps.append(config.strategy.max_surfels))
+    monkeypatch.setattr(runner, "train_and_evaluate",
+                        lambda config, out_dir, resume: caps.append(config.strategy.max_surfels))
     monkeypatch.setattr(runner, "collect", lambda exp: ([], []))
     assert runner.run_experiment(exp, only={"s/mcmc_20"})["failed"] == []
     assert caps == [2000]
@@ -279,7 +282,8 @@ def test_compactness_report_states_the_goal_check(tmp_path):
     from ghsplat_jax.experiments.compactness import write_compactness
 
     rows = []
-    for variant, strategy, frac, n, psnr in (("default", "default", None, 1000, 25.0), ("mcmc_20", "mcmc", 0.2, 200, 24.9),
+    for variant, strategy, frac, n, psnr in (("default", "default", None, 1000, 25.0),
+                                             ("mcmc_20", "mcmc", 0.2, 200, 24.9),
                                              ("budget_20", "budget", 0.2, 200, 24.5)):
         d = tmp_path / variant
         d.mkdir()

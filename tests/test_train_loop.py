@@ -82,7 +82,8 @@ def test_budget_count_follows_the_cap_schedule(tmp_path):
     schedule's allowance (linear from the initial count to the cap), and by exactly that
     when there are more candidates than room: the cap is followed, not just not exceeded."""
     out = tmp_path / "budget"
-    cfg = CONFIG.replace(strategy={"name": "budget", "max_surfels": 400}, densify_grad_threshold=1e-8)  # all seen are candidates
+    # a threshold this low makes every surfel seen a candidate
+    cfg = CONFIG.replace(strategy={"name": "budget", "max_surfels": 400}, densify_grad_threshold=1e-8)
     result = train(cfg, out, dataset=dataset())
     meta = read_meta(out / CHECKPOINT_NAME)
     initial, cap = meta["initial_count"], meta["max_surfels"]

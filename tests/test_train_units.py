@@ -118,8 +118,9 @@ def test_depth_normal_matches_float64_cross_products_of_back_projected_points():
     got = losses.depth_to_normal(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32),
                                  jnp.asarray(w2c, jnp.float32))
     np.testing.assert_allclose(np.asarray(got), want, atol=2e-4)
-    np.testing.assert_allclose(np.asarray(losses.depth_to_points(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32),
-                                                                 jnp.asarray(w2c, jnp.float32))), world, atol=1e-4)
+    points = losses.depth_to_points(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32),
+                                    jnp.asarray(w2c, jnp.float32))
+    np.testing.assert_allclose(np.asarray(points), world, atol=1e-4)
 
 
 # --- schedules and config -----------------------------------------------------------------------

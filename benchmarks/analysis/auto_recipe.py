@@ -236,7 +236,8 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
         lines.append(f"| {s['scene']} | {fmt(s['psnr_at_10_min']['mean'])} | " + " | ".join(cells) + " |")
     if ablated:
         lines += ["", "## Ablations (each against the same scene's seed-0 auto run)", "",
-                  "| scene | variant | test PSNR | change (dB) | surfels | count x | train s | change (s) | same code |",
+                  "| scene | variant | test PSNR | change (dB) | surfels | count x | train s | change (s) "
+                  "| same code |",
                   "|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {a['scene']} | {a['variant']} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "

@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     predates = settings_missing_from(Path(args.run) / CONFIG_NAME)  # the run's code had no such setting
     result = dict(run=str(args.run), step=config.steps if finished else meta["step"],
                   finished=finished, surfels=int(surfels.num), config_predates=predates,
-                  normal_loss_alpha_mask=None if "normal_loss_alpha_mask" in predates else config.normal_loss_alpha_mask,
+                  normal_loss_alpha_mask=(None if "normal_loss_alpha_mask" in predates
+                                          else config.normal_loss_alpha_mask),
                   lambda_normal=config.lambda_normal, empty_below=EMPTY_BELOW, covered_above=COVERED_ABOVE, mean=mean,
                   views=per_view, machine=machine_record())
     RESULTS.mkdir(exist_ok=True)

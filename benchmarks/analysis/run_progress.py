@@ -40,7 +40,8 @@ def summarize(records: list[dict], schedule_steps: int) -> dict:
         inside = (step > lo + 1) & (step <= hi)  # the first step of a window may carry a compile
         if inside.sum() >= 10:
             windows[f"{lo}-{hi}"] = dict(median_seconds_per_step=float(np.median(dt[inside])),
-                                         surfels=int(np.median([r["num_surfels"] for r, m in zip(records, inside) if m])),
+                                         surfels=int(np.median([r["num_surfels"]
+                                                                for r, m in zip(records, inside) if m])),
                                          steps_measured=int(inside.sum()))
     stall = dt > STALL_S
     stalls = dict(count=int(stall.sum()), seconds=round(float(dt[stall].sum()), 1),

@@ -298,7 +298,8 @@ def render(data: dict) -> str:
     out.append("")
 
     alone = lambda v: [by[s, v]["train_seconds"] for s in both  # noqa: E731
-                       if notes["conditions"].get(f"{s}/{v}", {}).get("alone") and by[s, v].get("device") in (None, "cpu")]
+                       if notes["conditions"].get(f"{s}/{v}", {}).get("alone")
+                       and by[s, v].get("device") in (None, "cpu")]
     last_change = []
     for s in both:
         _, prog = run_progress(data, d[s])
@@ -404,7 +405,8 @@ def render(data: dict) -> str:
             f"segments are status ok (`segments.md`), so the runner trains every one. " + " and ".join(
                 [fixes[0]] + [f.replace(" needed ", " ") for f in fixes[1:]])
             + "; with plain mapping they came out partial.",
-            f"- row3_x0 is ok with a {rng([r3['centre_error_max_pct_extent'], other['centre_error_max_pct_extent']], '.1f')}"
+            "- row3_x0 is ok with a "
+            f"{rng([r3['centre_error_max_pct_extent'], other['centre_error_max_pct_extent']], '.1f')}"
             "% max centre error (two hosts): its first two photos are off by several degrees, and no check catches "
             "that.",
             f"- **Remaking a segment does not always give the same model on another machine.** The {cap['views']} "

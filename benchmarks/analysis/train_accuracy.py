@@ -118,7 +118,8 @@ def main(argv=None) -> int:
         if args.until is not None and args.until < args.steps:
             deviations.append(f"evaluated at step {args.until} of {args.steps} (the target is for the finished run)")
         if args.steps < 30_000:
-            deviations.append(f"{args.steps} steps instead of 30000 (schedule scaled), so the PSNR target does not apply")
+            deviations.append(f"{args.steps} steps instead of 30000 (schedule scaled), "
+                              "so the PSNR target does not apply")
         for k, v in extra.items():
             if k in overrides and overrides[k] != v:
                 deviations.append(f"{k} = {v} instead of {overrides[k]} (the target's resolution)")

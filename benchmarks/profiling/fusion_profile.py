@@ -91,7 +91,8 @@ def source_of(hlo: str) -> dict[str, list[str]]:
         files = dict(re.findall(r'^(\d+) "(.*)"$', between("FileNames", "FunctionNames"), re.M))
         funcs = dict(re.findall(r'^(\d+) "(.*)"$', between("FunctionNames", "FileLocations"), re.M))
         locs = {m[0]: f"{Path(files[m[1]]).name}:{m[3]} {funcs[m[2]]}" for m in re.findall(
-            r"^(\d+) \{file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", between("FileLocations", "StackFrames"), re.M)}
+            r"^(\d+) \{file_name_id=(\d+) function_name_id=(\d+) line=(\d+)",
+            between("FileLocations", "StackFrames"), re.M)}
         frames = dict(re.findall(r"^(\d+) \{file_location_id=(\d+)", between("StackFrames", "\n\n"), re.M))
     except (IndexError, KeyError):
         return {}
@@ -160,7 +161,8 @@ def profile_camera(surfels: int, width: int, height: int, frames: int) -> dict:
     ops = [dict(op=name, ms_per_frame=round(ms[name], 3), calls_per_frame=round(calls[name], 1),
                 in_loop=calls[name] > 5, source=sources.get(name, [])[:3]) for name, _ in ms.most_common()]
     return dict(surfels=surfels, image=[width, height], frames=frames, frame_wall_s=float(np.median(walls)),
-                thread_ms_per_frame=sum(ms.values()), loop_thread_ms_per_frame=sum(o["ms_per_frame"] for o in ops if o["in_loop"]),
+                thread_ms_per_frame=sum(ms.values()),
+                loop_thread_ms_per_frame=sum(o["ms_per_frame"] for o in ops if o["in_loop"]),
                 busy_per_frame={k: v / frames for k, v in busy_threads(events).items()}, ops=ops)
 
 
@@ -257,7 +259,8 @@ def profile_training_step(run_dir: Path, steps: int) -> dict:
                 ops_at_once_per_step={k: v / steps for k, v in busy_threads(events).items()},
                 top_ops=[dict(region=region, op=name, ms_per_step=round(t, 3),
                               calls_per_step=round(op_calls[region, name], 1), source=sources.get(name, [])[:3],
-                              jax_ops=jax_ops.get(name, [])[:3]) for (region, name), t in op_ms.most_common(TOP_WRITTEN)])
+                              jax_ops=jax_ops.get(name, [])[:3])
+                         for (region, name), t in op_ms.most_common(TOP_WRITTEN)])
 
 
 def main_step(args) -> int:

@@ -137,7 +137,8 @@ def readme_text(rows: list[dict], revision: str) -> str:
              "chain drift / bound deg", "cross-check dropped (true error in the earlier model)", "cross-check s",
              "SfM s")
     return ("# SfM checks against the exact cameras: rotation-chain bound and leave-one-out cross-check\n\n"
-            "Made by `benchmarks/robustness/sfm_crosscheck.py` from results.json; do not edit by hand. `before`: the fixed 30-degree rotation-chain bound and "
+            "Made by `benchmarks/robustness/sfm_crosscheck.py` from results.json; do not edit by hand. "
+            "`before`: the fixed 30-degree rotation-chain bound and "
             "no cross-check; `after`: the bound scaled with the chain's own link errors and every view "
             "re-localised with itself left out (views landing more than 0.3% of the extent or 0.6 degrees "
             "away are dropped). Errors are of the kept views against the generator's exact cameras "

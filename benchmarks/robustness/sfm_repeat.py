@@ -34,7 +34,8 @@ def run_once(folder: Path, threads: int, max_size: int) -> dict:
         out = Path(tmp) / "sfm"
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "ghsplat_jax.cli", "sfm", "--images", str(folder / "images"),
-                               "--out", str(out), "--max-size", str(max_size), "--seed", "0", "--threads", str(threads)],
+                               "--out", str(out), "--max-size", str(max_size), "--seed", "0",
+                               "--threads", str(threads)],
                               capture_output=True, text=True)
         seconds = time.perf_counter() - start
         report = json.loads((out / "sfm_report.json").read_text()) if (out / "sfm_report.json").is_file() else {}

@@ -134,7 +134,8 @@ def main(argv=None) -> int:
     ax.axhline(res["rss_mb_at_warmup"] * 1.05, color="C3", ls="--", label="+5% limit")
     ax.set_xlabel("camera frame")
     ax.set_ylabel("resident memory (MiB)")
-    ax.set_title(f"sim soak: {res['frames']} frames, {res['lidar_scans']} LiDAR scans, growth {100 * res['growth']:.2f}%")
+    ax.set_title(f"sim soak: {res['frames']} frames, {res['lidar_scans']} LiDAR scans, "
+                 f"growth {100 * res['growth']:.2f}%")
     ax.legend(loc="lower right")
     fig.tight_layout()
     save_figure(fig, args.out + ".png")

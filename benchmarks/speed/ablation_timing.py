@@ -40,7 +40,8 @@ def main(argv=None) -> int:
     rows = [r for r in json.loads((args.results / "results.json").read_text())["rows"] if r["split"] == args.split]
     timing, charted = {}, []
     for scene in sorted({r["scene"] for r in rows}):
-        runs = {r["variant"]: r for r in rows if r["scene"] == scene and (Path(r["run_dir"]) / CHECKPOINT_NAME).is_file()}
+        runs = {r["variant"]: r for r in rows
+                if r["scene"] == scene and (Path(r["run_dir"]) / CHECKPOINT_NAME).is_file()}
         configs = {v: dataclasses.replace(load_config(Path(r["run_dir"]) / CONFIG_NAME), progress=False,
                                           checkpoint_every=0) for v, r in runs.items()}
         dataset = load_training_data(next(iter(configs.values())))  # the variants share the scene's data

@@ -7,8 +7,9 @@ The run folder gives the surfels (point_cloud.ply, or the checkpoint of an unfin
 its dataset. The chunk size and the backward do not change the image; the tile size changes
 it only where a surfel's alpha still reaches 1/255 outside its 3-sigma box, in pixels of a
 tile the box does not touch (the reference CUDA rasterizer behaves the same way). The
-largest difference from the run's own settings is recorded per variant. Times are medians after a warm-up, wall and process CPU time; the CPU time stays
-comparable when other jobs share the machine. Writes benchmarks/results/raster_ablation.json
+largest difference from the run's own settings is recorded per variant. Times are medians
+after a warm-up, wall and process CPU time; the CPU time stays comparable when other jobs
+share the machine. Writes benchmarks/results/raster_ablation.json
 and .png.
 """
 

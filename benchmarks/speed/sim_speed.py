@@ -41,7 +41,8 @@ def greenhouse_surfels(n: int, seed: int = 0):
     quats = np.asarray(safe_normalize(quats)[0], np.float32)
     scales = np.concatenate([np.log(rng.uniform(0.01, 0.03, (n_rows, 2))),
                              np.full((n_floor, 2), np.log(np.sqrt(24 * 8 / max(n_floor, 1)) * 0.7))])
-    colour = np.concatenate([np.c_[rng.uniform(-0.3, 0.0, n_rows), rng.uniform(0.0, 0.3, n_rows), rng.uniform(-0.4, -0.2, n_rows)],
+    colour = np.concatenate([np.c_[rng.uniform(-0.3, 0.0, n_rows), rng.uniform(0.0, 0.3, n_rows),
+                                   rng.uniform(-0.4, -0.2, n_rows)],
                              np.tile([0.0, -0.1, -0.2], (n_floor, 1))]) / 0.2820948
     return gs.make_surfels(means, quats, scales.astype(np.float32), np.full(n, 2.0, np.float32),
                            colour.astype(np.float32))
@@ -97,7 +98,8 @@ def bench(n: int, repeats: int, width: int, height: int, lidar_name: str, face_w
         "surfels": n, "camera": {"width": width, "height": height, "first_call_s": cam_first,
                                   "median_s": float(np.median(cam_times)), "fps": float(1 / np.median(cam_times)),
                                   "compilations_warmup": cam_warm_traces,
-                                  "compilations_timed": renderer.traces - cam_warm_traces, "pair_capacity": renderer.pair_capacity,
+                                  "compilations_timed": renderer.traces - cam_warm_traces,
+                                  "pair_capacity": renderer.pair_capacity,
                                   "coverage": float(np.mean(f.alpha > 0.5))},
         "lidar": lidars[variants[0]], "lidar_variants": lidars,
         "repeats": repeats,

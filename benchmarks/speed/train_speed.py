@@ -2,16 +2,18 @@
 
     python benchmarks/speed/train_speed.py --checkpoint runs/snap/fern_step1250.npz --config runs/fern30k/config.toml
     python benchmarks/speed/train_speed.py --scene fern            # from initialisation (step 0)
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pool   # pool as grown vs compacted
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare malloc # glibc's policy vs host_memory's
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare skip   # backward walks every chunk vs the live pairs
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pairs  # the checkpoint's pair buffer vs refitted
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare pairskip  # backward walks live chunks vs live pairs
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare rev --rev HEAD~2 --rounds 4  # older code vs this
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare rev-interleaved --rev HEAD  # the same, one process
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare xla --xla-flags="--xla_cpu_..." --rounds 4
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare threads  # one program vs two threads
-    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare partbatch  # threads' batches of 128 vs 32
+    python benchmarks/speed/train_speed.py --config C --checkpoint K --compare WHAT [...]  # two variants, below
+
+    --compare pool                                # pool as grown vs compacted
+    --compare malloc                              # glibc's policy vs host_memory's
+    --compare skip                                # backward walks every chunk vs the live pairs
+    --compare pairs                               # the checkpoint's pair buffer vs refitted
+    --compare pairskip                            # backward walks live chunks vs live pairs
+    --compare rev --rev HEAD~2 --rounds 4         # older code vs this
+    --compare rev-interleaved --rev HEAD          # the same, one process
+    --compare xla --xla-flags="--xla_cpu_..." --rounds 4
+    --compare threads                             # one program vs two threads
+    --compare partbatch                           # threads' batches of 128 vs 32
 
 Each variant runs real training steps (render, losses, gradients, Adam, densification statistics)
 from the same state and views, after a warm-up step that compiles; times are medians. The
@@ -247,8 +249,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed steps per variant")
     ap.add_argument("--label", help="name of this window in the results (default: scene@step)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # --compare malloc's worker
-    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev", "rev-interleaved",
-                                          "xla", "threads", "partbatch"),
+    ap.add_argument("--compare", choices=("raster", "pool", "malloc", "skip", "pairskip", "pairs", "rev",
+                                          "rev-interleaved", "xla", "threads", "partbatch"),
                     default="raster",
                     help="raster: previous rasterizer settings against current; pool: the checkpoint's pool "
                          "against the same state compacted to its live surfels; malloc: glibc's default "
@@ -263,7 +265,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rev", default="HEAD", help="with --compare rev or rev-interleaved: the baseline revision "
                                                   "(default HEAD)")
     ap.add_argument("--xla-flags", default="", help="with --compare xla: the compiler flags to try")
-    ap.add_argument("--rounds", type=int, default=2, help="with --compare malloc, rev or xla: child processes per variant")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="with --compare malloc, rev or xla: child processes per variant")
     args = ap.parse_args(argv)
     config = load_config(args.config) if args.config else SCENES[args.scene]
     config = dataclasses.replace(config, progress=False, checkpoint_every=0)
@@ -287,7 +290,8 @@ def main(argv=None) -> int:
         with checkout(args.rev) as tree:
             rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, check=True, capture_output=True,
                                  text=True).stdout.strip()
-            sessions = {"previous": rev_session(tree, args, checkpoint), "current": compiled_session(config, dataset, checkpoint)}
+            sessions = {"previous": rev_session(tree, args, checkpoint),
+                        "current": compiled_session(config, dataset, checkpoint)}
         rows = time_sessions(sessions, args.steps)
         previous = f"the code of revision {rev} ({args.rev}), in the same process, steps interleaved"
     elif args.compare == "xla":

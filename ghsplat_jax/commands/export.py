@@ -7,7 +7,8 @@ import json
 import sys
 import warnings
 
-HELP = "clean, crop, rescale, rotate (SH included) and merge Gaussian PLYs; write 2DGS or 3DGS-viewer PLY, optionally a mesh"
+HELP = ("clean, crop, rescale, rotate (SH included) and merge Gaussian PLYs; "
+        "write 2DGS or 3DGS-viewer PLY, optionally a mesh")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--rotate", nargs=3, type=float, metavar=("RX", "RY", "RZ"),
                    help="rotation in degrees, extrinsic x then y then z (SH bands rotated too)")
     t.add_argument("--translate", nargs=3, type=float, metavar=("TX", "TY", "TZ"))
-    t.add_argument("--mirror", choices=["x", "y", "z"], help="reflect across the plane normal to this axis (before rotate)")
+    t.add_argument("--mirror", choices=["x", "y", "z"],
+                   help="reflect across the plane normal to this axis (before rotate)")
     o = p.add_argument_group("output")
     o.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=None,
                    help="output SH degree (default: from --sh-policy over the inputs)")

@@ -19,7 +19,8 @@ HELP = "Detect AprilTags in rendered frames along a trajectory and report locali
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", metavar="LAYOUT_OR_PLY", help="layout .toml or scene .ply (tags beside it or --tags)")
     p.add_argument("--tags", metavar="tags.json", help="marker ground truth (default: <stem>.tags.json beside a PLY)")
-    p.add_argument("--out", required=True, metavar="DIR", help="report folder (report.md, localization.json, localization.png)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="report folder (report.md, localization.json, localization.png)")
     motion_args.add_arguments(p)
     p.add_argument("--rate", type=float, default=2.0, help="frames per simulated second")
     p.add_argument("--max-frames", type=int, help="evaluate at most this many frames")

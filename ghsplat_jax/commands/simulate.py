@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="render only the beams' rays (default: exact, about 3x faster) or whole face "
                         "images resampled onto the beams")
     p.add_argument("--organised", action="store_true", help="organised cloud (rings x columns, NaN = no return)")
-    p.add_argument("--record", metavar="run.mcap", help="write a rosbag2 bag with MCAP storage (run.mcap -> run/run.mcap)")
+    p.add_argument("--record", metavar="run.mcap",
+                   help="write a rosbag2 bag with MCAP storage (run.mcap -> run/run.mcap)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     p.add_argument("--live", action="store_true", help="publish over DDS as a ROS 2 node and serve /register_camera")
     p.add_argument("--domain-id", type=int, default=0, help="ROS_DOMAIN_ID for --live")
@@ -51,7 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--live: use Cyclone's default network setup instead of loopback only")
     p.add_argument("--real-time", type=float, default=1.0, metavar="FACTOR",
                    help="--live, --foxglove: pace simulated time at FACTOR x wall clock (0: as fast as possible)")
-    p.add_argument("--linger", type=float, default=0.0, help="keep serving (--live, --foxglove) or showing (--viewer) this many seconds after the trajectory")
+    p.add_argument("--linger", type=float, default=0.0,
+                   help="keep serving (--live, --foxglove) or showing (--viewer) this many seconds "
+                        "after the trajectory")
     p.add_argument("--foxglove", action="store_true",
                    help="serve the topics to Foxglove over its WebSocket protocol (pip install -e \".[foxglove]\")")
     p.add_argument("--port", type=int, default=8765, help="--foxglove: WebSocket port")

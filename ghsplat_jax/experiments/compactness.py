@@ -105,8 +105,10 @@ def summary_markdown(rows: list[dict], title: str) -> str:
                  "state MiB | capacity |")
     lines.append("|" + " --- |" * 12)
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['variant']} | {series_name(r)} | {_f(r.get('count_fraction'), '{:.0%}')} | "
-                     f"{_f(r['num_gaussians'], '{:,}')} | {_f(r['psnr'], '{:.2f}')} | {_f(r.get('dpsnr'), '{:+.2f}')} | "
+        lines.append(f"| {r['scene']} | {r['variant']} | {series_name(r)} | "
+                     f"{_f(r.get('count_fraction'), '{:.0%}')} | "
+                     f"{_f(r['num_gaussians'], '{:,}')} | {_f(r['psnr'], '{:.2f}')} | "
+                     f"{_f(r.get('dpsnr'), '{:+.2f}')} | "
                      f"{_f(r.get('train_seconds'), '{:.0f}')} | {_f(r.get('step_seconds'), '{:.3f}')} | "
                      f"{_f(r.get('render_seconds_per_view'), '{:.3f}')} | {_f(r.get('state_mib'), '{:.1f}')} | "
                      f"{_f(r.get('capacity'), '{:,}')} |")

@@ -129,15 +129,15 @@ def write_table1(rows: list[dict], folder, title: str = "Table 1") -> list[Path]
 def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path]:
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
-    cols = ("scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "lpips", "num_gaussians", "train_seconds",
-            "step_seconds", "steps", "render_seconds_per_view", "device", "status")
+    cols = ("scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "lpips", "num_gaussians",
+            "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device", "status")
     rows = [dict(r, status=r.get("status") or "finished") for r in rows]
     stopped = _unfinished(rows)
     note = (f"\n{len(stopped)} of {len(rows)} runs have not finished (status): their numbers are not final.\n"
             if stopped else "")
     with atomic_write(md, "w") as fh:
-        heads = ("scene", "variant", "split", "PSNR (dB)", "structure PSNR", "L1", "SSIM", "LPIPS", "Gaussians", "train s",
-                 "median step s", "steps", "render s/view", "device", "status")
+        heads = ("scene", "variant", "split", "PSNR (dB)", "structure PSNR", "L1", "SSIM", "LPIPS", "Gaussians",
+                 "train s", "median step s", "steps", "render s/view", "device", "status")
         fh.write(f"# {title}\n\n" + markdown_table(rows, cols, heads) + note)
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))

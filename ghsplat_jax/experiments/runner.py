@@ -248,7 +248,8 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
     try:
         run = resolve_count(run, all_runs or [], reported)
         log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir,
-                 run.config.strategy.name, f", max_surfels {run.config.strategy.max_surfels}" if run.count_fraction else "")
+                 run.config.strategy.name,
+                 f", max_surfels {run.config.strategy.max_surfels}" if run.count_fraction else "")
         kw = {} if until is None else {"until": int(until)}  # train_and_evaluate's own default otherwise
         resume = has_checkpoint(run.out_dir)
         dataset = None if resume else triangulated_data(run)
@@ -408,7 +409,8 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
                             row["status"], r.out_dir)
         if row is not None:
             contrib = bool(r.config.strategy.contrib_prune_every or r.config.strategy.contrib_prune_final)
-            rows.append(dict(row, strategy=r.config.strategy.name, count_fraction=r.count_fraction, contrib_prune=contrib))
+            rows.append(dict(row, strategy=r.config.strategy.name, count_fraction=r.count_fraction,
+                             contrib_prune=contrib))
         elif (r.scene, r.variant) in earlier:
             log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir, report)
             rows.append({"status": FINISHED} | earlier[(r.scene, r.variant)])

@@ -576,7 +576,8 @@ def run_divergence(case: dict, ctx) -> list[dict]:
     error = (f"stopped with TrainingDivergedError after {len(warnings)} rolled-back step(s); "
              if stopped else f"ran {steps} steps without stopping; ") + \
         f"non-finite values on disk: {'none' if finite else 'YES'}; point_cloud.ply written: " \
-        f"{'yes' if (out / PLY_NAME).exists() else 'no'}; checkpoint kept: {'yes' if (out / CHECKPOINT_NAME).exists() else 'no'}"
+        f"{'yes' if (out / PLY_NAME).exists() else 'no'}; " \
+        f"checkpoint kept: {'yes' if (out / CHECKPOINT_NAME).exists() else 'no'}"
     detection = ("NaN guard: non-finite loss or parameters -> roll back; after max_consecutive_rollbacks "
                  "(or max_total_rollbacks) stop, exit 2" if stopped else "NOT DETECTED")
     message = f"ghsplat train: {raised}" if stopped else "(none)"

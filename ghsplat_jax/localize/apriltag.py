@@ -160,7 +160,9 @@ def evaluate(frames_iter, tags: dict, robot) -> dict:
         K = frame.model.matrix
         dets = detect_tags(frame.rgb, K, tags, detector)
         seen = {d.tag_id for d in dets}
-        for c in visible_candidates(tags, frame.map_from_optical, K, frame.model.width, frame.model.height, frame.depth):
+        candidates = visible_candidates(tags, frame.map_from_optical, K, frame.model.width, frame.model.height,
+                                        frame.depth)
+        for c in candidates:
             per_candidate.append({**c, "t": t, "detected": c["id"] in seen})
         rec = {"t": t, "gt": [float(v) for v in gt], "detected": sorted(seen), "estimate": None,
                "position_error": None, "yaw_error_deg": None}

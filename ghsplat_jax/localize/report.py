@@ -23,7 +23,8 @@ def markdown(result: dict, title: str, plot_name: str | None) -> str:
              f"p90 {fmt(s['yaw_error_deg']['p90'], '{:.2f}')}, max {fmt(s['yaw_error_deg']['max'], '{:.2f}')}"]
     for label, b in s.get("by_tags_seen", {}).items():
         lines.append(f"- frames with {label} tag(s) detected: {b['frames']}; median position error "
-                     f"{fmt(b['position_error_m_median'])} m, median yaw error {fmt(b['yaw_error_deg_median'], '{:.2f}')} deg")
+                     f"{fmt(b['position_error_m_median'])} m, "
+                     f"median yaw error {fmt(b['yaw_error_deg_median'], '{:.2f}')} deg")
     lines.append("")
     for key, name, unit in (("rate_vs_distance", "distance", "m"), ("rate_vs_angle", "viewing angle", "deg")):
         lines += [f"## Detection rate against {name}", "", f"| {name} ({unit}) | visible | detection rate |",

@@ -268,7 +268,8 @@ def advice(report: dict) -> list[str]:
     return [
         f"{len(names)} views were left out ({shown}): re-localised from the other views' points with "
         f"themselves left out, they lie more than {100 * report['max_centre_rel']:g}% of the extent or "
-        f"{report['max_rotation_deg']:g} degree{'' if report['max_rotation_deg'] == 1 else 's'} from where the model put them, or too few of their points "
+        f"{report['max_rotation_deg']:g} degree{'' if report['max_rotation_deg'] == 1 else 's'} "
+        "from where the model put them, or too few of their points "
         "are seen by other views to confirm them; see cross_check in sfm_report.json",
         "such views usually see too little of what their neighbours see (the first or last frames of a "
         "walk, a quick turn): add photos there with 60-80% overlap, or retake them",

@@ -108,7 +108,8 @@ def _frame_images(rgb, alpha, depth, normal):
     norm = jnp.sqrt(normal[..., 0] ** 2 + normal[..., 1] ** 2 + normal[..., 2] ** 2)[..., None]
     unit = normal / jnp.maximum(norm, 1e-12)
     return (jnp.clip(rgb, 0.0, 1.0).astype(jnp.float32), alpha.astype(jnp.float32),
-            jnp.where(hit, depth, jnp.nan).astype(jnp.float32), jnp.where(hit[..., None], unit, jnp.nan).astype(jnp.float32))
+            jnp.where(hit, depth, jnp.nan).astype(jnp.float32),
+            jnp.where(hit[..., None], unit, jnp.nan).astype(jnp.float32))
 
 
 @dataclasses.dataclass
@@ -169,7 +170,8 @@ class CameraRenderer:
     def render(self, surfels, model: CameraModel, map_from_optical: np.ndarray, stamp: float = 0.0) -> CameraFrame:
         return self.render_many(surfels, [model], [map_from_optical], stamp)[0]
 
-    def render_many(self, surfels, models: list[CameraModel], poses: list[np.ndarray], stamp: float = 0.0) -> list[CameraFrame]:
+    def render_many(self, surfels, models: list[CameraModel], poses: list[np.ndarray],
+                    stamp: float = 0.0) -> list[CameraFrame]:
         """Cameras of one size render in one call; other sizes in their own."""
         out: list[CameraFrame | None] = [None] * len(models)
         groups: dict[tuple[int, int], list[int]] = {}

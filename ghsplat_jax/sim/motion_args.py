@@ -12,7 +12,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trajectory", default="aisles", metavar="aisles|FILE",
                    help="'aisles' (serpentine along every aisle), a waypoint file (.csv x,y[,yaw][,t] / .json / "
                         ".toml), or a .csv of velocity commands with columns v,w[,dt] (differential drive)")
-    p.add_argument("--rows", metavar="rows.json|toml", help="row boxes for 'aisles' (default: from the layout or the surfels)")
+    p.add_argument("--rows", metavar="rows.json|toml",
+                   help="row boxes for 'aisles' (default: from the layout or the surfels)")
     p.add_argument("--speed", type=float, default=0.5, help="m/s along waypoints and aisles")
     p.add_argument("--aisle-margin", type=float, default=1.0, help="metres past the row ends where the robot turns")
     p.add_argument("--dt", type=float, default=0.1, help="seconds per velocity command (when the file has no dt)")

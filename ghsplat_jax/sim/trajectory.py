@@ -48,7 +48,8 @@ class Trajectory:
         yaw = np.interp(t, self.t, np.unwrap(self.yaw))
         return np.stack([x, y, np.arctan2(np.sin(yaw), np.cos(yaw))], axis=-1)
 
-    def sample(self, rate_hz: float, start: float | None = None, end: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, rate_hz: float, start: float | None = None,
+               end: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         start = self.t[0] if start is None else start
         end = self.t[-1] if end is None else end
         times = start + np.arange(int(np.floor((end - start) * rate_hz + 1e-9)) + 1) / rate_hz

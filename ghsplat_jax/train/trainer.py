@@ -562,8 +562,8 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
             for fh in logs:
                 _sync(fh)
             session.save(seconds())
-            log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)", int(session.state.step),
-                        out / CHECKPOINT_NAME)
+            log.warning("interrupted at step %d; checkpoint saved to %s (continue with --resume)",
+                        int(session.state.step), out / CHECKPOINT_NAME)
             raise
         finally:
             for fh in logs:

@@ -91,7 +91,8 @@ class _Endpoints:
                  "camera_info": D.CameraInfo_, "lidar": D.PointCloud2_, "tf": D.TFMessage_,
                  "tf_static": D.TFMessage_, "request": D.SetCameraInfo_Request_, "reply": D.SetCameraInfo_Response_}
         self.topics = {k: Topic(dp, TOPICS[k], types[k], qos=_qos(k == "tf_static")) for k in types}
-        ins = ("camera_pose", "request") if server else ("render", "render_depth", "camera_info", "lidar", "tf", "tf_static", "reply")
+        ins = (("camera_pose", "request") if server
+               else ("render", "render_depth", "camera_info", "lidar", "tf", "tf_static", "reply"))
         self.readers = {k: DataReader(dp, self.topics[k], qos=_qos(k == "tf_static")) for k in ins}
         self.writers = {k: DataWriter(dp, self.topics[k], qos=_qos(k == "tf_static"))
                         for k in types if k not in ins}
@@ -154,7 +155,8 @@ class SimNode:
                 ok, msg = self._register(req)
             except Exception as exc:  # never let one request stop the node
                 ok, msg = False, f"internal error: {exc!r}"
-            (log.info if ok else log.warning)("register_camera from %016x #%d: %s", req.client_id, req.sequence_number, msg)
+            (log.info if ok else log.warning)("register_camera from %016x #%d: %s",
+                                              req.client_id, req.sequence_number, msg)
             if not ok:
                 self.counts["rejected"] += 1
             self.io.write("reply", D.SetCameraInfo_Response_(req.client_id, req.sequence_number, ok, msg))

@@ -190,7 +190,8 @@ class MCMCStrategy(Strategy):
         """Add a refinement round's relocated and added counts to the state (and to `info`)."""
         counts = {k: int(v) for k, v in counts.items()}
         info.update(counts)
-        return dict(sstate, relocated=sstate["relocated"] + counts["relocated"], added=sstate["added"] + counts["added"])
+        return dict(sstate, relocated=sstate["relocated"] + counts["relocated"],
+                    added=sstate["added"] + counts["added"])
 
     def add_noise(self, ctx, state: TrainState, it: int) -> TrainState:
         """The step's position noise (none when noise_lr is 0)."""
