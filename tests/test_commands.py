@@ -171,7 +171,7 @@ def test_quick_demo_writes_every_stage(tmp_path):
     assert read_pixels(out / "views" / "greenhouse_rgb.png").shape == (320, 480, 3)
     report = (out / "report.md").read_text()
     assert f"| surfels | {metrics['num_gaussians']} |" in report
-    assert "| training steps | 200 of the 2DGS schedule (changed: none) |" in report
+    assert f"| training steps | {metrics['steps']}, the auto recipe: " in report and "recipe: None" not in report
 
 
 def test_make_test_runs_each_file_alone_and_names_a_crashed_one(tmp_path, capsys):
