@@ -26,12 +26,14 @@ shown as they were recorded, with the device, not as a same-machine comparison.
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import statistics
 import sys
 import tomllib
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
+from readme_check import report, text_diff  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -272,13 +274,7 @@ def readme_from_results(out: Path = RESULTS / "auto_recipe") -> str:
 
 def check(out: Path = RESULTS / "auto_recipe", readme_path: Path | None = None) -> str:
     """'' when the README is what OUT/results.json gives, else a unified diff (committed -> generated)."""
-    readme_path = readme_path or out / "README.md"
-    want = readme_from_results(out)
-    have = readme_path.read_text() if readme_path.is_file() else ""
-    if want == have:
-        return ""
-    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
-                                        f"{readme_path} (committed)", f"{readme_path} (generated)"))
+    return text_diff(readme_path or out / "README.md", readme_from_results(out))
 
 
 def main(argv=None) -> int:
@@ -290,14 +286,7 @@ def main(argv=None) -> int:
                     help="write nothing: exit 1 with a diff if OUT/README.md differs from OUT/results.json's")
     args = ap.parse_args(argv)
     if args.check:
-        diff = check(args.out)
-        if diff:
-            sys.stdout.write(diff)
-            print(f"\n{args.out / 'README.md'} differs from what auto_recipe.py renders from results.json",
-                  file=sys.stderr)
-            return 1
-        print(f"{args.out / 'README.md'}: up to date")
-        return 0
+        return report(args.out / "README.md", check(args.out), "what auto_recipe.py renders from results.json")
     sys.path.insert(0, str(ROOT / "benchmarks"))  # record.py
     from record import machine_record
 

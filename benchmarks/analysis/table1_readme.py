@@ -14,12 +14,14 @@ Statistics: the rank correlation is Spearman's rho with an exact two-sided permu
 from __future__ import annotations
 
 import argparse
-import difflib
 import itertools
 import json
 import re
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
+from readme_check import report, text_diff  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -443,11 +445,7 @@ def generate(results: Path = RESULTS) -> str:
 
 def check(readme: Path, results: Path = RESULTS) -> str:
     """'' when `readme` is what the results files give, else a unified diff (committed -> generated)."""
-    want, have = generate(results), readme.read_text() if readme.is_file() else ""
-    if want == have:
-        return ""
-    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
-                                        f"{readme} (committed)", f"{readme} (generated)"))
+    return text_diff(readme, generate(results))
 
 
 def main(argv=None) -> int:
@@ -458,13 +456,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     readme = args.readme or args.results / NAME / "README.md"
     if args.check:
-        diff = check(readme, args.results)
-        if diff:
-            sys.stdout.write(diff)
-            print(f"\n{readme} differs from what {SCRIPT} generates; run it without --check", file=sys.stderr)
-            return 1
-        print(f"{readme}: up to date")
-        return 0
+        return report(readme, check(readme, args.results), f"what {SCRIPT} generates; run it without --check")
     sys.path.insert(0, str(ROOT))
     from ghsplat_jax.io_utils import atomic_write
 

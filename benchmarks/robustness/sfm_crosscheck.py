@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py
+from readme_check import report, text_diff  # noqa: E402
 from record import ROOT, machine_record  # noqa: E402
 
 from ghsplat_jax.experiments.report import markdown_table  # noqa: E402
@@ -159,14 +160,7 @@ def readme_from_results(results: Path = RESULTS) -> str:
 
 def check(results: Path = RESULTS) -> str:
     """'' when README.md is what results.json gives, else a unified diff (committed -> generated)."""
-    import difflib
-
-    readme = results / "README.md"
-    want, have = readme_from_results(results), readme.read_text() if readme.is_file() else ""
-    if want == have:
-        return ""
-    return "".join(difflib.unified_diff(have.splitlines(True), want.splitlines(True),
-                                        f"{readme} (committed)", f"{readme} (generated)"))
+    return text_diff(results / "README.md", readme_from_results(results))
 
 
 def write(rows: list[dict]) -> None:
@@ -187,13 +181,7 @@ def main(argv=None) -> int:
                     help="run nothing: exit 1 with a diff if README.md differs from what results.json gives")
     args = ap.parse_args(argv)
     if args.check:
-        diff = check()
-        if diff:
-            sys.stdout.write(diff)
-            print(f"\n{RESULTS / 'README.md'} differs from what results.json gives", file=sys.stderr)
-            return 1
-        print(f"{RESULTS / 'README.md'}: up to date")
-        return 0
+        return report(RESULTS / "README.md", check(), "what results.json gives")
     old = RESULTS / "results.json"
     rows = json.loads(old.read_text())["rows"] if old.is_file() else []
     for case in args.cases:
