@@ -94,6 +94,12 @@ def pair_bucket(pairs: int) -> int:
     return capacity_bucket(math.ceil(max(pairs, 1) * 1.25))
 
 
+def regrown_capacity(capacity: int, pairs: int) -> int:
+    """The pair capacity after a render that needed `pairs` overflowed `capacity`: at least
+    doubled, so a growing count compiles once per doubling, not at every overflow."""
+    return max(2 * capacity, pair_bucket(pairs))
+
+
 def stack_views(views, with_alpha: bool = False):
     """(images (N,H,W,C), Ks, world_to_cams, width, height) of views of one size. `with_alpha`
     and any view with alpha: C = 4, the image's alpha last (1 for a view without alpha)."""
@@ -343,7 +349,7 @@ class TrainingSession:
                 out = render(render_params(s.params, s.active, v.camera.world_to_cam), v.camera, rcfg)
                 if int(out.stats.overflow) <= 0:
                     break
-                capacity = max(2 * capacity, pair_bucket(int(out.stats.num_pairs)))
+                capacity = regrown_capacity(capacity, int(out.stats.num_pairs))
             target = jnp.asarray(v.image)
             psnrs.append(float(psnr(out.rgb, target)))
             l1s.append(float(l1(out.rgb, target)))
@@ -384,7 +390,7 @@ class TrainingSession:
             if int(m["overflow"]) <= 0:
                 break
             # The render dropped pairs: discard the step, grow the buffer, redo (one compile per bucket).
-            self.pair_capacity = max(2 * self.pair_capacity, pair_bucket(int(m["num_pairs"])))
+            self.pair_capacity = regrown_capacity(self.pair_capacity, int(m["num_pairs"]))
             log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
                      self.pair_capacity)
         m = {k: np.asarray(val).item() for k, val in m.items()}
