@@ -71,23 +71,20 @@ def best_partner(ev: Evidence) -> dict[str, int]:
 
 
 def groups(ev: Evidence) -> list[list[str]]:
-    """Connected parts of the match graph (pairs of at least MATCH_INLIERS), largest first."""
-    parent = {n: n for n in ev.names}
+    """Connected parts of the match graph (pairs of at least MATCH_INLIERS), largest first, each
+    in capture order (scipy's components, as folds.graph_components counts them)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def root(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for (a, b), n in ev.inliers.items():
-        if n >= MATCH_INLIERS and a in parent and b in parent:
-            parent[root(a)] = root(b)
-    parts: dict[str, list[str]] = {}
-    for n in ev.names:
-        parts.setdefault(root(n), []).append(n)
-    order = {n: k for k, n in enumerate(ev.names)}
-    return sorted(parts.values(), key=lambda g: (-len(g), order[g[0]]))
+    index = {n: k for k, n in enumerate(ev.names)}
+    edges = [(index[a], index[b]) for (a, b), n in ev.inliers.items()
+             if n >= MATCH_INLIERS and a in index and b in index]
+    r, c = np.array(edges, dtype=int).reshape(-1, 2).T
+    _, labels = connected_components(coo_matrix((np.ones(len(r)), (r, c)), shape=(len(index),) * 2), directed=False)
+    parts: dict[int, list[str]] = {}
+    for n, label in zip(ev.names, labels):
+        parts.setdefault(int(label), []).append(n)
+    return sorted(parts.values(), key=lambda g: (-len(g), index[g[0]]))
 
 
 # ---------------------------------------------------------------------------- checks
