@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.host_memory import reuse_freed_memory
+from ghsplat_jax.io_utils import code_revision
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
@@ -461,12 +462,15 @@ def _truncate_stats(path: Path, last_step: int) -> None:
         fh.write("".join(x + "\n" for x in keep))
 
 
-def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int) -> float:
-    """Evaluate the test views now and append the point to the test curve; returns its seconds."""
+def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int, revision: str) -> float:
+    """Evaluate the test views now and append the point to the test curve; returns its seconds.
+    Each point names its code revision and the load then: a curve resumed later (another
+    revision, another load) is a time axis only as far as its points agree."""
     t = time.perf_counter()
     point = test_eval(session.state.params, session.state.active, session.pair_capacity)
     spent = time.perf_counter() - t
-    record = dict(step=step, elapsed_s=round(seconds() - spent, 3), num_surfels=num, eval_seconds=round(spent, 3))
+    record = dict(step=step, elapsed_s=round(seconds() - spent, 3), num_surfels=num, eval_seconds=round(spent, 3),
+                  code_revision=revision, load_average=[round(x, 2) for x in os.getloadavg()])
     curve.write(json.dumps(_jsonable(record | point), allow_nan=False) + "\n")
     curve.flush()
     log.info("step %d: test PSNR %.2f dB over %d views (%.1f s to evaluate)", step, point["psnr"], point["num_views"],
@@ -529,9 +533,11 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     step = start
     stop = config.steps if until is None else min(until, config.steps)
 
+    revision = code_revision() if curve is not None else ""
+
     def curve_point():  # inside session.step(step): the model before the step's strategy round
         nonlocal paused, last_t
-        spent = _write_curve_point(curve, test_eval, session, step + 1, seconds, num)
+        spent = _write_curve_point(curve, test_eval, session, step + 1, seconds, num, revision)
         paused += spent  # the test curve's time is not training time,
         last_t += spent  # nor does the steps-per-second rate count it
 
