@@ -176,3 +176,32 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
     again = json.loads((out / "results.json").read_text())
     assert [r["variant"] for r in again["runs"]] == ["auto", "auto_nores", "auto_seed1"]
     assert "| seg | auto_nores | 27.50 | -0.50 |" in (out / "README.md").read_text()
+
+
+def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
+    """A stopped compact_curve run (a test curve, no metrics.json) is read at fixed training times
+    up to where it stopped, never beyond; the auto seeds are read at their final model once they
+    stopped themselves; the README names how far the curve reached and its code revision."""
+    from benchmark_scripts import load_benchmark
+
+    report = load_benchmark("auto_recipe")
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    _fake_run(runs, "seg", "auto", 28.0, 30000, 500.0, [(100, 25.5), (290, 27.2), (480, 28.0)])
+    curve = runs / "seg" / "compact_curve"
+    curve.mkdir(parents=True)
+    (curve / "test_curve.jsonl").write_text("".join(
+        json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p, "num_surfels": 9000, "code_revision": "f00d"})
+        + "\n" for i, (t, p) in enumerate([(60, 22.0), (200, 24.0), (400, 26.0)])))
+    ref = tmp_path / "ref.json"
+    ref.write_text(json.dumps({"rows": []}))
+    assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())
+    (c,) = res["reference_curves"]
+    assert c["variant"] == "compact" and not c["finished"] and c["last_step"] == 1500
+    at = res["summary"][0]["equal_time"]
+    assert at["compact"] == {"120": 22.0, "300": 24.0, "600": None}  # stopped at 400 s: 10 min not reached
+    assert at["auto"]["600"]["mean"] == 28.0 and at["auto"]["120"]["mean"] == 25.5
+    text = (out / "README.md").read_text()
+    assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | f00d |" in text
+    assert (out / "psnr_vs_time_seg.png").is_file()
+    assert report.check(out) == ""

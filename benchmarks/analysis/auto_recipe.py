@@ -10,7 +10,10 @@ test_curve.jsonl: the test views scored while training, that time left out of th
 seconds) and the default and compact rows of the reference results. Variants "auto" and
 "auto_seedN" are the recipe's seeds; any other "auto_X" is an ablation, compared with the same
 scene's seed-0 run. A run interrupted before it finished (a test curve, no metrics.json) is
-listed apart, with its last scored step. Runs already in OUT/results.json whose folder is gone
+listed apart, with its last scored step. The variants "default_curve" and "compact_curve" (the
+reference variants trained with a test curve, often only their first steps: --stop-at) give the
+reference curves: drawn beside the auto runs and read at fixed training times (the equal-time
+table), finished or not, each with the step it reached. Runs already in OUT/results.json whose folder is gone
 are kept from there (run folders do not outlive the machine they ran on). Writes
 OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
 machine record of this report and of each run), OUT/README.md (generated: tables) and
@@ -47,12 +50,12 @@ def is_seed(variant: str) -> bool:
     return variant == "auto" or (variant.startswith("auto_seed") and variant[9:].isdigit())
 
 
-def carried_runs(previous: Path, present: list[dict]) -> list[dict]:
-    """Finished runs recorded in a previous results.json whose (scene, variant) is not among `present`."""
+def carried_runs(previous: Path, present: list[dict], key: str = "runs") -> list[dict]:
+    """Records under `key` in a previous results.json whose (scene, variant) is not among `present`."""
     if not previous.is_file():
         return []
     have = {(r["scene"], r["variant"]) for r in present}
-    return [r for r in json.loads(previous.read_text()).get("runs", []) if (r["scene"], r["variant"]) not in have]
+    return [r for r in json.loads(previous.read_text()).get(key, []) if (r["scene"], r["variant"]) not in have]
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -64,6 +67,34 @@ def read_jsonl(path: Path) -> list[dict]:
             except ValueError:
                 continue  # a line cut short
     return rows
+
+
+CURVE_VARIANTS = {"default_curve": "default", "compact_curve": "compact"}  # run folder -> reference variant
+EQUAL_TIMES_S = (120.0, 300.0, 600.0)  # the equal-time table's training times
+
+
+def curve_points(path: Path) -> list[dict]:
+    """A test_curve.jsonl's points as the results keep them."""
+    keys = ("elapsed_s", "psnr", "num_surfels", "step", "code_revision", "load_average")
+    return [{k: p.get(k) for k in keys} for p in read_jsonl(path)]
+
+
+def reference_curves(runs_root: Path) -> list[dict]:
+    """The reference variants' test curves (RUNS/SCENE/{default,compact}_curve), finished or stopped."""
+    out = []
+    for folder, variant in CURVE_VARIANTS.items():
+        for path in sorted(runs_root.glob(f"*/{folder}/test_curve.jsonl")):
+            curve = curve_points(path)
+            if not curve:
+                continue
+            metrics = path.parent / "metrics.json"
+            m = json.loads(metrics.read_text()) if metrics.is_file() else {}
+            out.append({"scene": path.parent.parent.name, "variant": variant, "finished": bool(m),
+                        "last_step": curve[-1]["step"], "num_surfels_then": curve[-1]["num_surfels"],
+                        "machine": m.get("machine"),
+                        "code_revisions": sorted({p["code_revision"] or "unrecorded" for p in curve}),
+                        "curve": curve})
+    return out
 
 
 def unfinished_runs(runs_root: Path) -> list[dict]:
@@ -79,8 +110,7 @@ def unfinished_runs(runs_root: Path) -> list[dict]:
         out.append({"scene": run.parent.name, "variant": run.name, "last_scored_step": last["step"],
                     "psnr_then": last["psnr"], "num_surfels_then": last.get("num_surfels"),
                     "train_seconds_then": last["elapsed_s"],
-                    "curve": [{"elapsed_s": p["elapsed_s"], "psnr": p["psnr"], "num_surfels": p.get("num_surfels"),
-                               "step": p["step"]} for p in curve]})
+                    "curve": curve_points(curve_path)})
     return out
 
 
@@ -99,8 +129,7 @@ def auto_runs(runs_root: Path) -> list[dict]:
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
                     "best_step": stop.get("best_step"), "stop_reason": stop.get("reason"),
                     "device": m.get("device"), "machine": m.get("machine"), "code_revision": m.get("code_revision"),
-                    "curve": [{"elapsed_s": p["elapsed_s"], "psnr": p["psnr"], "num_surfels": p.get("num_surfels"),
-                               "step": p["step"]} for p in read_jsonl(run / "test_curve.jsonl")]})
+                    "curve": curve_points(run / "test_curve.jsonl")})
     return out
 
 
@@ -131,6 +160,24 @@ def psnr_at(curve: list[dict], seconds: float) -> float | None:
     return next((p["psnr"] for p in reversed(curve) if p["elapsed_s"] <= seconds), None)
 
 
+def psnr_then(curve: list[dict], seconds: float, finished: bool) -> float | None:
+    """The test PSNR of a run after `seconds` of training: its last point by then; None when
+    nothing was scored by then, or when an unfinished curve ends before `seconds` (not reached)."""
+    if not curve or (not finished and curve[-1]["elapsed_s"] < seconds):
+        return None
+    return psnr_at(curve, seconds)
+
+
+def equal_time(scene: str, runs: list[dict], curves: list[dict]) -> dict:
+    """Test PSNR after each of EQUAL_TIMES_S of training: the auto seeds' mean, and each reference curve's."""
+    seeds = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
+    row = {"auto": {f"{t:g}": spread([psnr_then(r["curve"], t, True) for r in seeds]) for t in EQUAL_TIMES_S}}
+    for c in curves:
+        if c["scene"] == scene:
+            row[c["variant"]] = {f"{t:g}": psnr_then(c["curve"], t, c["finished"]) for t in EQUAL_TIMES_S}
+    return row
+
+
 def ablations(runs: list[dict]) -> list[dict]:
     """Each ablation run against its scene's seed-0 auto run: what leaving the part out costs."""
     base = {r["scene"]: r for r in runs if r["variant"] == "auto"}
@@ -147,7 +194,7 @@ def ablations(runs: list[dict]) -> list[dict]:
     return out
 
 
-def summarize(runs: list[dict], refs: dict) -> list[dict]:
+def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dict]:
     scenes = sorted({r["scene"] for r in runs if is_seed(r["variant"])})
     out = []
     for scene in scenes:
@@ -168,24 +215,43 @@ def summarize(runs: list[dict], refs: dict) -> list[dict]:
         if default:
             s["time_to_default_psnr_s"] = [time_to(r["curve"], default["psnr"]) for r in rs]
         s["psnr_at_10_min"] = spread([psnr_at(r["curve"], TIME_GOAL_S) for r in rs])
+        s["equal_time"] = equal_time(scene, runs, list(curves))
         s["time_to_level_s"] = {f"{level:g}": spread([time_to(r["curve"], level) for r in rs])
                                 for level in PSNR_LEVELS}
         out.append(s)
     return out
 
 
-def chart(scene: str, runs: list[dict], refs: dict, path: Path) -> None:
+def run_label(r: dict) -> str:
+    """A chart legend's name of an auto run: the recipe's seed, or the ablation's variant."""
+    if r.get("label"):
+        return r["label"]
+    name = f"auto, seed {r['seed']}" if is_seed(r["variant"]) else r["variant"]
+    return f"{name} ({r['num_gaussians']:,} surfels)"
+
+
+REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray")}
+
+
+def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dict] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
+    markers = "ov^<>pP*hX"
     for i, r in enumerate(r for r in runs if r["scene"] == scene):
         c = r["curve"]
-        ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-o", ms=3, color=f"C{i}",
-                label=r.get("label") or f"auto, seed {r['seed']} ({r['num_gaussians']:,} surfels)")
-    for variant, marker, color in (("default", "s", "black"), ("compact", "D", "gray")):
+        ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-", marker=markers[i % len(markers)],
+                ms=3, color=f"C{i}", label=run_label(r))
+    for c in (c for c in curves if c["scene"] == scene):
+        marker, color = REFERENCE_STYLE[c["variant"]]
+        pts = c["curve"]
+        reached = "to the end" if c["finished"] else f"to step {c['last_step']:,} (stopped)"
+        ax.plot([p["elapsed_s"] / 60 for p in pts], [p["psnr"] for p in pts], "--", marker=marker, ms=3, color=color,
+                label=f"{c['variant']}, test curve {reached} ({c['num_surfels_then'] or 0:,} surfels then)")
+    for variant, (marker, color) in REFERENCE_STYLE.items():
         ref = refs.get((scene, variant))
         if ref and ref.get("train_seconds"):
             ax.plot([ref["train_seconds"] / 60], [ref["psnr"]], marker, color=color, ms=8,
@@ -207,7 +273,8 @@ def fmt(x, spec=".2f", none="-"):
     return none if x is None else format(x, spec)
 
 
-def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list[dict], ablated: list[dict]) -> str:
+def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list[dict], ablated: list[dict],
+           curves: list[dict] = ()) -> str:
     lines = ["# The auto recipe against the default and the compact variant", "",
              "Generated by `benchmarks/analysis/auto_recipe.py` from the runs' metrics.json and test_curve.jsonl "
              "and the reference results; do not edit by hand.", "",
@@ -236,6 +303,21 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
             t = s["time_to_level_s"][f"{level:g}"]
             cells.append("never" if not t["n"] else f"{t['mean'] / 60:.1f} ({t['n']} of {s['seeds']})")
         lines.append(f"| {s['scene']} | {fmt(s['psnr_at_10_min']['mean'])} | " + " | ".join(cells) + " |")
+    if curves:
+        lines += ["", "## Equal training time: test PSNR (dB) after 2, 5 and 10 min", "",
+                  "The reference variants trained with a test curve on the same machine as the auto runs "
+                  "(`default_curve`, `compact_curve`); '-' where a curve stopped before that time.", "",
+                  "| scene | variant | " + " | ".join(f"{t / 60:g} min" for t in EQUAL_TIMES_S)
+                  + " | curve reaches (step) | code |", "|---|---|" + "---|" * len(EQUAL_TIMES_S) + "---|---|"]
+        for s in summary:
+            for variant, at in s.get("equal_time", {}).items():
+                c = next((c for c in curves if c["scene"] == s["scene"] and c["variant"] == variant), None)
+                cells = [fmt(v["mean"] if isinstance(v, dict) else v) for v in at.values()]
+                reach = ("stops itself" if c is None else
+                         "end" if c["finished"] else f"{c['last_step']:,}")
+                code = "per run" if c is None else ", ".join(r[:10] for r in c["code_revisions"])
+                name = f"auto (mean of {s['seeds']})" if c is None else variant
+                lines.append(f"| {s['scene']} | {name} | " + " | ".join(cells) + f" | {reach} | {code} |")
     if ablated:
         lines += ["", "## Ablations (each against the same scene's seed-0 auto run)", "",
                   "| scene | variant | test PSNR | change (dB) | surfels | count x | train s | change (s) "
@@ -269,7 +351,8 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
 def readme_from_results(out: Path = RESULTS / "auto_recipe") -> str:
     """OUT/README.md's text rendered from the committed OUT/results.json (no run folders)."""
     res = json.loads((out / "results.json").read_text())
-    return readme(res["summary"], res["runs"], res["report"], res.get("unfinished", []), res.get("ablations", []))
+    return readme(res["summary"], res["runs"], res["report"], res.get("unfinished", []), res.get("ablations", []),
+                  res.get("reference_curves", []))
 
 
 def check(out: Path = RESULTS / "auto_recipe", readme_path: Path | None = None) -> str:
@@ -297,19 +380,23 @@ def main(argv=None) -> int:
     if not runs and not unfinished:
         print(f"no auto runs under {args.runs}", file=sys.stderr)
         return 1
+    curves = reference_curves(args.runs)
+    curves = sorted(curves + carried_runs(args.out / "results.json", curves, "reference_curves"),
+                    key=lambda c: (c["scene"], c["variant"]))
     refs = reference_rows(args.reference)
-    summary = summarize(runs, refs)
+    summary = summarize(runs, refs, curves)
     record = {"machine": machine_record(start_backend=False), "code_revision": code_revision()}
     scenes = sorted({r["scene"] for r in runs + unfinished})
     for scene in scenes:
         interrupted = [dict(u, label=f"{u['variant']}, interrupted at step {u['last_scored_step']} "
                                      f"({u['num_surfels_then'] or 0:,} surfels)") for u in unfinished]
-        chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png")
+        chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png", curves)
     ablated = ablations(runs)
     write_json(args.out / "results.json", {"report": record, "summary": summary, "runs": runs,
-                                           "ablations": ablated, "unfinished": unfinished})
+                                           "ablations": ablated, "unfinished": unfinished,
+                                           "reference_curves": curves})
     with atomic_write(args.out / "README.md", "w") as fh:
-        fh.write(readme(summary, runs, record, unfinished, ablated))
+        fh.write(readme(summary, runs, record, unfinished, ablated, curves))
     print(f"wrote {args.out}/results.json, README.md and {len(scenes)} charts")
     return 0
 
