@@ -11,7 +11,15 @@ import pytest
 
 from ghsplat_jax.train.config import ConfigError, TrainConfig
 from ghsplat_jax.train.recipes import RECIPES
-from ghsplat_jax.train.resolution import box_downscale, energy_kept, factor_at, scale_intrinsics, spectrum_schedule
+from ghsplat_jax.train.resolution import (
+    box_downscale,
+    crop_stack,
+    crop_windows,
+    energy_kept,
+    factor_at,
+    scale_intrinsics,
+    spectrum_schedule,
+)
 from ghsplat_jax.train.stopping import PlateauRule
 from ghsplat_jax.train.strategies.auto import gain_per_doubling
 
@@ -63,6 +71,32 @@ def test_spectrum_schedule_starts_coarse_for_smooth_images_and_ends_at_full_reso
     assert factor_at(sched, 0) == 8 and factor_at(sched, 999) == 2 and factor_at(sched, 1000) == 1
     assert spectrum_schedule(noise, until=1000) == [(0, 1)]  # white noise needs every pixel from the start
     assert spectrum_schedule(smooth, until=1000, min_side=200) == [(0, 1)]  # 128 px < 200: no smaller scale
+
+
+@pytest.mark.parametrize("width,height,tiles", [(192, 144, 2), (50, 37, 2), (50, 37, 3), (31, 17, 1)])
+def test_crop_windows_are_one_size_and_cover_every_pixel(width, height, tiles):
+    windows = crop_windows(width, height, tiles)
+    assert len(windows) == tiles * tiles and len({(w, h) for _, _, w, h in windows}) == 1
+    hits = np.zeros((height, width), int)
+    for x0, y0, w, h in windows:
+        assert 0 <= x0 and x0 + w <= width and 0 <= y0 and y0 + h <= height
+        hits[y0:y0 + h, x0:x0 + w] += 1
+    assert hits.min() == 1 and hits.max() <= 4  # neighbours overlap by under a window's pixel at most
+
+
+def test_a_window_renders_as_the_same_pixels_of_the_whole_view():
+    """A window's camera (the principal point moved by the window's corner) renders exactly the
+    pixels the whole view shows there, so a step on a window trains the same model."""
+    import ghsplat_jax as gs
+    from raster_scenes import camera, random_scene
+
+    scene, cam = random_scene(60, seed=3), camera(50, 37)
+    whole = np.asarray(gs.render(scene, cam).rgb)
+    crops, Ks, w, h = crop_stack(whole[None], np.asarray(cam.K)[None], 2)
+    for t, (x0, y0, _, _) in enumerate(crop_windows(50, 37, 2)):
+        out = np.asarray(gs.render(scene, gs.Camera(K=Ks[t], world_to_cam=cam.world_to_cam, width=w, height=h)).rgb)
+        np.testing.assert_allclose(out, crops[t], atol=2e-5)
+        np.testing.assert_array_equal(crops[t], whole[y0:y0 + h, x0:x0 + w])
 
 
 def test_gain_per_doubling_reads_psnr_per_doubling_of_the_count():
@@ -205,3 +239,26 @@ def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
     assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | f00d |" in text
     assert (out / "psnr_vs_time_seg.png").is_file()
     assert report.check(out) == ""
+
+
+def test_window_training_visits_every_window_of_every_view_once_an_epoch_at_full_resolution(tmp_path):
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+    from ghsplat_jax.train.trainer import TrainingSession, train
+
+    ds = cached_synthetic_dataset(num_views=8, width=32, height=24, num_surfels=40, test_every=4, num_points=200)
+    cfg = TrainConfig().replace(steps=60, crop_tiles=2, res_schedule="spectrum", res_until=12, res_min_side=8,
+                                progress=False, pair_capacity=16384).resolved()
+    session = TrainingSession(cfg, tmp_path / "s", ds, resume=False)
+    n = session.images.shape[0]
+    start = session.schedule[-1][0]  # the first full-resolution step
+    v, _, K, w, h = session.view_at(0)  # reduced resolution: a whole view at half size, not a window
+    assert start > 0 and (w, h) == (16, 12) and float(K[0, 0]) == pytest.approx(float(session.Ks[v][0, 0]) / 2)
+    seen = set()
+    first = -(-start // (4 * n)) * (4 * n)  # epochs of windows count from step 0
+    for step in range(first, first + 4 * n):
+        v, image, K, w, h = session.view_at(step)
+        assert (w, h) == (16, 12) and image.shape == (12, 16, 3)
+        seen.add((v, float(K[0, 2]), float(K[1, 2])))
+    assert len(seen) == 4 * n
+    result = train(cfg, tmp_path / "run", dataset=ds)
+    assert result.steps == 60 and np.isfinite(np.asarray(result.surfels.means)).all()

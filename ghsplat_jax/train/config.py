@@ -123,6 +123,11 @@ class TrainConfig:
     res_until: int = 3000
     res_energy: float = 0.8
     res_min_side: int = 64
+    # At full resolution, each step trains on one of crop_tiles x crop_tiles windows of a view
+    # (one size, spread to cover the image; each window of each view once an epoch): fewer pixels
+    # a step, so more steps a second (1: whole images). The densification statistics then see
+    # window-sized images: the default strategy's pixel-gradient threshold was set on whole ones.
+    crop_tiles: int = 1
 
     # --- initialisation -------------------------------------------------------------------
     init_opacity: float = 0.1           # initial opacity of every surfel
@@ -218,6 +223,8 @@ class TrainConfig:
         if not 0 < self.res_energy <= 1 or self.res_min_side < 1 or self.res_until < 0:
             raise ConfigError("res_energy must be in (0, 1], res_min_side >= 1 and res_until >= 0, got "
                               f"{self.res_energy}, {self.res_min_side}, {self.res_until}")
+        if self.crop_tiles < 1:
+            raise ConfigError(f"crop_tiles must be >= 1, got {self.crop_tiles}")
         for name in ("lambda_opacity_reg", "lambda_scale_reg"):
             if getattr(self, name) < 0 and getattr(self, name) != -1:
                 raise ConfigError(f"{name} must be >= 0, or -1 for the strategy's default, got {getattr(self, name)}")

@@ -1,9 +1,11 @@
-"""Fewer pixels early: the training images at 1/2^k scale for the first steps (DashGaussian,
-CVPR 2025), raised to full resolution at the pace of the images' spectral energy.
+"""Fewer pixels a step: the training images at 1/2^k scale for the first steps (DashGaussian,
+CVPR 2025), raised to full resolution at the pace of the images' spectral energy; and at full
+resolution, optionally, windows of the images instead of whole ones.
 
 Scales are powers of two and images are box-filtered (the mean of each 2^k x 2^k block; a
 remainder of rows or columns is cropped), so a pixel of the small image covers exactly its
-block and the intrinsics only scale: K' = diag(1/f, 1/f, 1) K.
+block and the intrinsics only scale: K' = diag(1/f, 1/f, 1) K. A window only moves the
+principal point: K' = K - (x0, y0) on (cx, cy).
 """
 
 from __future__ import annotations
@@ -72,3 +74,27 @@ def factor_at(schedule: list[tuple[int, int]], step: int) -> int:
         if step >= first:
             factor = f
     return factor
+
+
+def crop_windows(width: int, height: int, tiles: int) -> list[tuple[int, int, int, int]]:
+    """tiles x tiles windows (x0, y0, w, h), row by row, all of one size (one compiled step),
+    that together cover a width x height image: w = ceil(width / tiles), the first at the left
+    edge, the last at the right, the others evenly between (they overlap by under a window's
+    pixel when the size does not divide). tiles = 1: the whole image."""
+    w, h = -(-width // tiles), -(-height // tiles)
+    starts = lambda size, n: [round(i * (size - n) / (tiles - 1)) if tiles > 1 else 0  # noqa: E731
+                              for i in range(tiles)]
+    return [(x0, y0, w, h) for y0 in starts(height, h) for x0 in starts(width, w)]
+
+
+def crop_stack(images: np.ndarray, Ks: np.ndarray, tiles: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(N x T windows (N*T,h,w,C), their intrinsics, w, h): window t of view v at index v*T + t."""
+    n, height, width = images.shape[:3]
+    windows = crop_windows(width, height, tiles)
+    crops = np.stack([images[:, y0:y0 + h, x0:x0 + w] for x0, y0, w, h in windows], axis=1)
+    shift = np.zeros((len(windows), 3, 3), np.float32)
+    shift[:, 0, 2] = [x0 for x0, _, _, _ in windows]
+    shift[:, 1, 2] = [y0 for _, y0, _, _ in windows]
+    crop_Ks = np.asarray(Ks, np.float32)[:, None] - shift[None]
+    _, _, w, h = windows[0]
+    return crops.reshape((-1,) + crops.shape[2:]), crop_Ks.reshape(-1, 3, 3), w, h

@@ -29,7 +29,13 @@ from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train import pose as pose_mod
 from ghsplat_jax.train.config import TrainConfig, save_config
-from ghsplat_jax.train.resolution import box_downscale, factor_at, scale_intrinsics, spectrum_schedule
+from ghsplat_jax.train.resolution import (
+    box_downscale,
+    crop_stack,
+    factor_at,
+    scale_intrinsics,
+    spectrum_schedule,
+)
 from ghsplat_jax.train.run_dir import (
     CHECKPOINT_NAME,
     CONFIG_NAME,
@@ -203,6 +209,7 @@ class TrainingSession:
         if len(self.schedule) > 1:
             log.info("resolution schedule: %s", ", ".join(f"1/{f} from step {s}" for s, f in self.schedule))
         self.levels: dict[int, tuple] = {1: (self.images, self.Ks, self.width, self.height)}
+        self.crops = None  # the full-resolution windows (crop_tiles > 1), made at first use
         self.rule = PlateauRule.from_config(config, full_resolution_from=self.schedule[-1][0])
         self.stop_state = PlateauRule.initial()
         self.best = None  # (state, strategy state) of the best validation check
@@ -332,6 +339,23 @@ class TrainingSession:
                               images.shape[2], images.shape[1])
         return self.levels[f]
 
+    def view_at(self, step: int) -> tuple:
+        """(view index, image, K, width, height) that `step` trains on: a whole view at the
+        step's scale, or at full resolution with crop_tiles > 1 one window of a view (every
+        window of every view once an epoch)."""
+        c, n = self.config, self.images.shape[0]
+        images, Ks, width, height = self.level(step)
+        tiles = c.crop_tiles ** 2 if factor_at(self.schedule, step) == 1 else 1
+        if tiles == 1:
+            v = view_order(c.seed, step, n)
+            return v, images[v], Ks[v], width, height
+        if self.crops is None:
+            crops, crop_Ks, w, h = crop_stack(np.asarray(images), np.asarray(Ks), c.crop_tiles)
+            self.crops = (jnp.asarray(crops), jnp.asarray(crop_Ks), w, h)
+        crops, crop_Ks, w, h = self.crops
+        item = view_order(c.seed, step, n * tiles)
+        return item // tiles, crops[item], crop_Ks[item], w, h
+
     def validate(self) -> dict:
         """The held-out views' mean PSNR (and L1) of the current model, at full resolution."""
         from ghsplat_jax.raster.render import render
@@ -380,13 +404,12 @@ class TrainingSession:
         `before_round()` is called after the update and before the strategy's round of this step
         (which may reset every opacity), as 3DGS evaluates its test views."""
         c = self.config
-        v = view_order(c.seed, step, self.images.shape[0])
-        images, Ks, width, height = self.level(step)
+        v, image, K, width, height = self.view_at(step)
         while True:
             rcfg = step_raster_config(c, self.pair_capacity, step)
             lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
             view = {} if self.state.pose is None else {"view": jnp.int32(v)}
-            new, m = self.step_fn(self.state, images[v], Ks[v], self.w2cs[v], lr, rcfg, width, height, **view)
+            new, m = self.step_fn(self.state, image, K, self.w2cs[v], lr, rcfg, width, height, **view)
             m = jax.device_get(m)
             if int(m["overflow"]) <= 0:
                 break
