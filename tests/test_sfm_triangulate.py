@@ -60,6 +60,17 @@ def test_points_triangulated_from_known_cameras_lie_on_the_surface(pointless, tm
     assert len(points) >= 40 and info["points"] == len(points) and info["views"] == VIEWS
     assert colors.shape == points.shape and 0.0 <= colors.min() and colors.max() <= 1.0
     assert info["mean_reprojection_px"] < 1.5
+    # Verified pairs: those with at least 15 inlier matches, not every pair COLMAP tried (it keeps
+    # an entry with 0 inliers for each).
+    import pycolmap
+
+    db = pycolmap.Database.open(str(tmp_path / "tri" / "database.db"))
+    try:
+        _, geometries = db.read_two_view_geometries()
+    finally:
+        db.close()
+    inliers = [len(np.asarray(g.inlier_matches).reshape(-1, 2)) for g in geometries]
+    assert 0 < info["verified_pairs"] == sum(n >= 15 for n in inliers) <= len(inliers)
     err = _depth_errors(pointless, points)
     # scene extent ~2 m: half the points within 1 cm of the rendered surface, 80% within 10 cm
     assert np.median(err) < 0.01 and np.mean(err < 0.1) > 0.8, (np.median(err), np.mean(err < 0.1))

@@ -257,6 +257,16 @@ def median_triangulation_angle(reconstruction, max_points: int = 2000) -> float 
     return float(np.median(angles)) if angles else None
 
 
+def verified_pair_count(db) -> int:
+    """Pairs of an open database that verified as a match: at least MATCH_INLIERS inlier matches
+    and a defined geometry (COLMAP keeps a two-view entry, with 0 inliers, for every pair tried)."""
+    import pycolmap
+
+    _, geometries = db.read_two_view_geometries()
+    return sum(1 for g in geometries if len(np.asarray(g.inlier_matches).reshape(-1, 2)) >= MATCH_INLIERS
+               and pycolmap.TwoViewGeometryConfiguration(int(g.config)).name not in ("UNDEFINED", "DEGENERATE"))
+
+
 def read_evidence(database: Path, names: list[str], reconstruction=None,
                   dropped: dict[str, str] | None = None) -> Evidence:
     """Evidence from a run's database (all verified pairs) and its model (None: no model)."""

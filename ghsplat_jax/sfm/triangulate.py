@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.sfm.diagnose import verified_pair_count
+
 log = logging.getLogger("ghsplat.sfm")
 
 
@@ -189,7 +191,7 @@ def triangulate_known_cameras(views, work_dir, options: TriangulateOptions | Non
     points, colors, tracks = points[finite], colors[finite], tracks[finite]
     db = _open_database(pycolmap, database)
     try:
-        pairs = int(db.num_verified_image_pairs()) if hasattr(db, "num_verified_image_pairs") else None
+        pairs = verified_pair_count(db)
     finally:
         db.close()
     info = {"views": len(views), "verified_pairs": pairs, "points": int(len(points)),
