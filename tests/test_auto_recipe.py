@@ -87,8 +87,9 @@ def test_crop_windows_are_one_size_and_cover_every_pixel(width, height, tiles):
 def test_a_window_renders_as_the_same_pixels_of_the_whole_view():
     """A window's camera (the principal point moved by the window's corner) renders exactly the
     pixels the whole view shows there, so a step on a window trains the same model."""
-    import ghsplat_jax as gs
     from raster_scenes import camera, random_scene
+
+    import ghsplat_jax as gs
 
     scene, cam = random_scene(60, seed=3), camera(50, 37)
     whole = np.asarray(gs.render(scene, cam).rgb)

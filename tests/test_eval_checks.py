@@ -25,6 +25,12 @@ def test_structure_psnr_exposes_a_missing_thin_subject():
     whole = image_metrics(empty, photo)["psnr"]
     s = structure_metrics(empty, photo)
     assert whole > 20.0 and s["structure_psnr"] < 13.0 and whole - s["structure_psnr"] > 10.0
+    assert s["structure_gain_db"] == 0.0  # the empty render is exactly the background: nothing gained
+    # A render of the plant that is off by 0.1 everywhere on it gains, however small the plant is;
+    # its whole-image PSNR minus structure PSNR is as large as the missing plant's.
+    rough = np.where(photo > 0, photo - 0.1, 0.0).astype(np.float32)
+    r = structure_metrics(rough, photo)
+    assert r["structure_gain_db"] > 10.0 and image_metrics(rough, photo)["psnr"] - r["structure_psnr"] > 10.0
     assert s["structure_l1"] > 10 * image_metrics(empty, photo)["l1"] * 0.5
     mask = structure_mask(photo)
     assert mask[10, 30] and mask[10, 29] and not mask[10, 27] and not mask[2, 2]  # the stem and its edge
@@ -52,12 +58,13 @@ def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
     rows = ([{"split": "train", "name": f"t{i}", "psnr": 36.0 + 0.1 * i} for i in range(5)]
             + [{"split": "train", "name": "bad_pose.jpg", "psnr": 25.0}]
             + [{"split": "test", "name": f"s{i}", "psnr": 26.0} for i in range(3)])
-    metrics = {"train": {"psnr": 34.3, "structure_psnr": 30.0}, "test": {"psnr": 26.0, "structure_psnr": 12.0}}
+    metrics = {"train": {"psnr": 34.3, "structure_psnr": 30.0, "structure_gain_db": 14.0},
+               "test": {"psnr": 26.0, "structure_psnr": 12.0, "structure_gain_db": 1.5}}
     with caplog.at_level(logging.WARNING, logger="ghsplat.eval"):
         out = diagnose(metrics, rows, where="RUN")
     assert out["outlier_views"]["train"][0]["name"] == "bad_pose.jpg" and out["outlier_views"]["test"] == []
     assert abs(out["train_test_gap_db"] - 8.3) < 1e-9
-    assert list(out["structure_gap_db"]) == ["test"] and abs(out["structure_gap_db"]["test"] - 14.0) < 1e-9
+    assert out["missing_structure_db"] == {"test": 1.5}
     text = caplog.text
     assert "bad_pose.jpg (25.00 dB)" in text and "bad pose" in text
     assert "over-fits" in text and "--recipe auto" in text

@@ -105,7 +105,7 @@ def test_stop_at_trains_to_the_step_then_the_run_resumes_and_evaluation_names_it
     assert m["steps"] == 12
     assert set(m["outlier_views"]) == {"train", "test"} and isinstance(m["warnings"], list)
     assert m["train_test_gap_db"] == m["train"]["psnr"] - m["test"]["psnr"]
-    assert "structure_psnr" in m["test"] and "structure_gap_db" in m
+    assert "structure_psnr" in m["test"] and "missing_structure_db" in m
     if weights_path() is not None:  # LPIPS on the test views only, and in the results table
         assert m["test"]["lpips"] > 0 and "lpips" not in m["train"] and result["rows"][0]["lpips"] == m["test"]["lpips"]
 

@@ -41,14 +41,15 @@ def test_outlier_views_are_named_with_the_exact_warning():
     assert det == "outlier views (test: test03.png; 1 of 2 seed(s))" and msg == found[0]["message"]
 
 
-def test_train_test_gap_and_structure_gap_each_name_their_warning():
+def test_train_test_gap_and_missing_structure_each_name_their_warning():
     rows = _rows("train", [30.0] * 3, structure=15.0) + _rows("test", [21.0] * 3, structure=15.0)
-    m = _metrics({"psnr": 30.0, "structure_psnr": 15.0}, {"psnr": 21.0, "structure_psnr": 15.0}, rows)
+    m = _metrics({"psnr": 30.0, "structure_psnr": 15.0, "structure_gain_db": 1.0},
+                 {"psnr": 21.0, "structure_psnr": 15.0, "structure_gain_db": 4.0}, rows)
     found = stability.detect(m, [])
-    assert [f["kind"] for f in found] == ["train-test gap", "structure gap"]
+    assert [f["kind"] for f in found] == ["train-test gap", "missing structure"]
     assert found[0]["detail"] == "9.0 dB" and "over-fits" in found[0]["message"]
-    assert found[1]["detail"] == "train 15.0 dB"  # the test split's gap (6 dB) is under the 10 dB line
-    assert found[1]["message"].startswith("WARNING ghsplat.eval: OUT: train views: the PSNR where the photos show")
+    assert found[1]["detail"] == "train gain 1.0 dB"  # the test split gains 4 dB: over the 3 dB line
+    assert found[1]["message"].startswith("WARNING ghsplat.eval: OUT: train views: where the photos show structure")
 
 
 def test_input_check_and_nan_guard_come_from_the_logged_lines():
@@ -65,13 +66,13 @@ def test_input_check_and_nan_guard_come_from_the_logged_lines():
 
 
 def test_a_warning_the_baseline_also_raises_does_not_detect_a_failure():
-    found = [{"kind": "structure gap", "detail": "test 12.0 dB", "message": "m"}]
-    det, _ = stability.describe_detection(False, [found], [0], baseline_kinds={"structure gap"})
-    assert det.startswith("NOT DETECTED") and "structure gap" in det
+    found = [{"kind": "missing structure", "detail": "test 12.0 dB", "message": "m"}]
+    det, _ = stability.describe_detection(False, [found], [0], baseline_kinds={"missing structure"})
+    assert det.startswith("NOT DETECTED") and "missing structure" in det
     det, _ = stability.describe_detection(False, [found], [0], baseline_kinds=set())
-    assert det.startswith("structure gap")
+    assert det.startswith("missing structure")
     det, _ = stability.describe_detection(True, [found], [0])
-    assert det.startswith("passes; warned: structure gap")
+    assert det.startswith("passes; warned: missing structure")
 
 
 def test_seed_stats_and_verdict_spread():

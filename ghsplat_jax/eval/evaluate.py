@@ -18,8 +18,8 @@ from ghsplat_jax.eval.metrics import (
     background_cover,
     image_metrics,
     lpips_metrics,
+    missing_structure,
     psnr_outliers,
-    structure_gap,
     structure_metrics,
     summarize,
 )
@@ -144,8 +144,9 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
     warning that says what it hints at and what to do:
     `outlier_views` {split: [{name, psnr, below_median_db}]} (views far below their split's
     median: metrics.psnr_outliers), `train_test_gap_db` (training minus test PSNR; over
-    `gap_db` is over-fitting), `structure_gap_db` {split: dB} (the structure PSNR far below the
-    whole image's: the model misses the subject), and `warnings`, the logged texts."""
+    `gap_db` is over-fitting), `missing_structure_db` {split: dB} (the structure gain, when the render
+    does barely better than an empty one where the photos show structure: the model misses the
+    subject), and `warnings`, the logged texts."""
     warnings = []
 
     def warn(text: str) -> None:
@@ -173,17 +174,18 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
              f"(more than {gap_db:g}): the model over-fits the training views. Use fewer surfels (--strategy "
              "budget or mcmc with --max-surfels), more views, or `--recipe auto`, which stops when held-out views "
              "stop improving")
-    gaps = {}
+    missing = {}
     for split in ("train", "test"):
         s = metrics.get(split) or {}
-        g = structure_gap(s)
+        g = missing_structure(s)
         if g is not None:
-            gaps[split] = g
-            warn(f"{split} views: the PSNR where the photos show structure ({s['structure_psnr']:.2f} dB) is "
-                 f"{g:.1f} dB below the whole image's ({s['psnr']:.2f} dB): the model misses what the photos show "
-                 "(e.g. a thin plant on a plain background) and the whole-image score hides it. Look at the test "
-                 "renders; check the initial points cover the subject, and train longer or at full resolution")
-    out["structure_gap_db"] = gaps
+            missing[split] = g
+            warn(f"{split} views: where the photos show structure the render is only {g:.1f} dB better than an "
+                 f"empty one (the photos' background colour): {s['structure_psnr']:.2f} dB there, against "
+                 f"{s['psnr']:.2f} dB over the whole image. The model misses what the photos show (e.g. a thin "
+                 "plant on a plain background) and the whole-image score hides it. Look at the test renders; check "
+                 "the initial points cover the subject, and train longer or at full resolution")
+    out["missing_structure_db"] = missing
     out["warnings"] = warnings
     return out
 

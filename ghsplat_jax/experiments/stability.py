@@ -261,7 +261,7 @@ def _load(case: dict, cfg):
 
 
 # ---------------------------------------------------------------- what flagged a run
-DETECTORS = ("input check", "NaN guard", "outlier views", "train-test gap", "structure gap")
+DETECTORS = ("input check", "NaN guard", "outlier views", "train-test gap", "missing structure")
 
 
 def _eval_warning(metrics: dict, starts: str) -> str | None:
@@ -302,11 +302,12 @@ def detect(metrics: dict | None, warnings: list[str]) -> list[dict]:
     if gap is not None and gap > TRAIN_TEST_GAP_DB:
         found.append({"kind": "train-test gap", "detail": f"{gap:.1f} dB",
                       "message": _eval_warning(metrics, "the training views' PSNR") or f"train-test gap {gap:.1f} dB"})
-    gaps = metrics.get("structure_gap_db") or {}
-    if gaps:
-        found.append({"kind": "structure gap", "detail": ", ".join(f"{k} {v:.1f} dB" for k, v in gaps.items()),
-                      "message": "\n".join(_eval_warning(metrics, f"{k} views: the PSNR where the photos show")
-                                           or f"{k} structure gap {v:.1f} dB" for k, v in gaps.items())})
+    missing = metrics.get("missing_structure_db") or {}
+    if missing:
+        found.append({"kind": "missing structure",
+                      "detail": ", ".join(f"{k} gain {v:.1f} dB" for k, v in missing.items()),
+                      "message": "\n".join(_eval_warning(metrics, f"{k} views: where the photos show structure")
+                                           or f"{k} structure gain {v:.1f} dB" for k, v in missing.items())})
     return found
 
 
