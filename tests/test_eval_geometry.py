@@ -111,3 +111,39 @@ def test_evaluation_reports_the_errors_of_a_synth_scene(synth_view, tmp_path):
     assert m["test"]["geometry_views"] == 1 and m["test"]["depth_abs_err"] == pytest.approx(0.1, abs=0.01)
     assert m["train"]["geometry_views"] == 1 and 0 < m["train"]["geometry_covered"] <= 1
     assert {"depth_abs_err", "normal_err_deg"} <= set(m["train"])
+
+
+def test_a_model_in_its_own_frame_is_scored_in_the_scenes_through_the_recorded_similarity(synth_view, tmp_path):
+    """An SfM model of a synth folder's photos has its own frame and scale: with the similarity
+    onto the exact cameras in its sfm_report.json, its depth and normals are carried into the
+    scene's frame and score as the same surfels do there (metres and degrees, not model units)."""
+    import json
+
+    from ghsplat_jax.eval.geometry import truth_source
+    from ghsplat_jax.scene.transform import similarity, transform_camera
+
+    root, view, truth = synth_view
+    scale, angle = 2.5, np.radians(70.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    shift = np.array([0.3, -1.0, 0.2])
+    sfm = tmp_path / "sfm"
+    sfm.mkdir()
+    assert truth_source(sfm) is None  # no report: no ground truth
+    (sfm / "sfm_report.json").write_text(json.dumps({"accuracy": {
+        "reference": str(root / "sparse" / "0"),
+        "to_reference": {"scale": scale, "rotation": rot.tolist(), "translation": shift.tolist()}}}))
+    found, s, r = truth_source(sfm)
+    assert found == root and s == scale and np.allclose(r, rot)
+    assert ground_truth(sfm, view.name, W, H)[0].shape == (H, W)
+    # The same surfels and camera in the model's frame: x_model = R^T (x_scene - t) / scale.
+    inverse = dict(scale=1.0 / scale, M=rot.T, t=-rot.T @ shift / scale)
+    surfels = similarity(_surfels_on(view, *truth), **inverse)
+    cam = gs.Camera(K=view.camera.K, world_to_cam=transform_camera(view.camera.world_to_cam, **inverse),
+                    width=W, height=H)
+    out = render(surfels, cam)
+    exact = _errors(view, truth)
+    carried = geometry_errors(np.asarray(out.median_depth), np.asarray(out.normal), np.asarray(out.alpha), *truth,
+                              scale=s, rotation=r)
+    assert carried["depth_abs_err"] < 2e-3 and abs(carried["normal_err_deg"] - exact["normal_err_deg"]) < 0.5
+    raw = geometry_errors(np.asarray(out.median_depth), np.asarray(out.normal), np.asarray(out.alpha), *truth)
+    assert raw["depth_abs_err"] > 0.5 and raw["normal_err_deg"] > exact["normal_err_deg"] + 5.0  # read as it is: wrong

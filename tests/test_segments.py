@@ -100,3 +100,47 @@ def test_only_prepares_just_the_segments_it_names(tmp_path):
                     'segment = {{ row = 0, end = "x1" }}\n'.format(tmp_path))
     assert prepare_segments(load_experiment(path), {"row0_x0"}) == {}
     assert not (tmp_path / "gh" / "row0_x1").exists()
+
+
+def _write_model(folder, w2cs):
+    """A COLMAP text model of cameras with these world_to_cam poses (no points)."""
+    from scipy.spatial.transform import Rotation
+
+    folder.mkdir(parents=True)
+    (folder / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
+    lines = []
+    for i, w2c in enumerate(w2cs, start=1):
+        x, y, z, w = Rotation.from_matrix(w2c[:3, :3]).as_quat()
+        lines += [f"{i} {w} {x} {y} {z} {w2c[0, 3]} {w2c[1, 3]} {w2c[2, 3]} 1 {i:05d}.png", ""]
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+    (folder / "points3D.txt").write_text("")
+
+
+def test_an_older_report_gets_the_similarity_onto_the_exact_cameras(tmp_path):
+    """A segment's sfm_report.json from before the accuracy recorded its similarity gets it (and
+    the reference folder) when the experiment next reads it: what depth and normal errors need."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from ghsplat_jax.experiments.segments import Segment, _is_done
+    from ghsplat_jax.scene.transform import transform_camera
+
+    rng = np.random.default_rng(0)
+    truth = []
+    for _ in range(6):
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        truth.append(w2c)
+    rot = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    # The model's frame: x_model = R^T (x_true - t) / 3, so x_true = 3 R x_model + t.
+    model = [transform_camera(w, 1 / 3, rot.T, -rot.T @ np.array([1.0, 2.0, 0.5]) / 3) for w in truth]
+    sfm = tmp_path / "gh" / "row0_x0" / "sfm"
+    _write_model(sfm / "sparse" / "0", model)
+    _write_model(sfm.parent / "photos" / "sparse" / "0", truth)
+    (sfm / "sfm_report.json").write_text(json.dumps({"status": "ok", "accuracy": {"scale": 3.0}}))
+    report = _is_done(Segment("row0_x0", 0, "x0", sfm))
+    frame = report["accuracy"]["to_reference"]
+    assert frame["scale"] == pytest.approx(3.0) and np.allclose(frame["rotation"], rot, atol=1e-6)
+    assert np.allclose(frame["translation"], [1.0, 2.0, 0.5], atol=1e-6)
+    assert report["accuracy"]["reference"] == str((sfm.parent / "photos" / "sparse" / "0").resolve())
+    assert json.loads((sfm / "sfm_report.json").read_text()) == report  # written back

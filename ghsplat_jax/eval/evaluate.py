@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.eval.geometry import geometry_errors, ground_truth
+from ghsplat_jax.eval.geometry import geometry_errors, ground_truth, truth_source
 from ghsplat_jax.eval.metrics import (
     TRAIN_TEST_GAP_DB,
     background_cover,
@@ -96,6 +96,8 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     rcfg = dataclasses.replace(config.raster, pair_capacity=capacity)
     rows, times = [], []
     warm = False
+    root = getattr(dataset, "root", None)
+    frame = truth_source(root)  # where ground truth exists: the dataset's frame onto the scene's
     for split, views in splits.items():
         for v in tqdm(views, desc=f"eval {split}", disable=not progress, leave=False):
             if not warm:  # compile outside the timing
@@ -110,9 +112,10 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
                  | background_cover(out.alpha, v.alpha))
             if split == "test" and config.eval_lpips:  # the papers report it on test views; a VGG pass is costly
                 m |= lpips_metrics(out.rgb, v.image)
-            truth = ground_truth(getattr(dataset, "root", None), v.name, v.camera.width, v.camera.height)
+            truth = ground_truth(root, v.name, v.camera.width, v.camera.height)
             if truth is not None:  # a synth scene: depth and normal error against its ray-cast geometry
-                m |= geometry_errors(out.median_depth if rcfg.median else None, out.normal, out.alpha, *truth)
+                m |= geometry_errors(out.median_depth if rcfg.median else None, out.normal, out.alpha, *truth,
+                                     scale=frame[1], rotation=frame[2])
             if not all(math.isfinite(x) for x in m.values()):
                 raise FloatingPointError(f"view {v.name}: non-finite metrics {m}")
             rows.append(dict(split=split, name=v.name, render_seconds=dt, **m))

@@ -11,7 +11,11 @@ errors compare them pixel by pixel where the scene has a surface and the model c
   the pixels the two errors are taken over.
 
 Only a synth dataset folder (one with scene.toml) is trusted to hold ground truth: other datasets
-may keep estimated depth under the same folder names."""
+may keep estimated depth under the same folder names. A model `ghsplat sfm` made from a synth
+folder's photos has its own frame and scale: when its sfm_report.json records the similarity
+onto the exact cameras (`accuracy.to_reference`, from the experiments that know them), the
+model's depth and normals are carried into the scene's frame by it, so the errors, in metres
+and degrees, include the SfM's own pose error."""
 
 from __future__ import annotations
 
@@ -34,29 +38,57 @@ def _nearest(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
     return pixels[rows][:, cols]
 
 
-def ground_truth(root, name: str, width: int, height: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """((H,W) z-depth, (H,W,3) world normals) of the view `name` at the loaded size, from a synth
-    dataset folder (depth/STEM.exr, normals/STEM.exr); None for any other dataset or a view
-    without both files."""
-    from ghsplat_jax.data.images import read_pixels
+def truth_source(root) -> tuple[Path, float, np.ndarray] | None:
+    """(synth folder, scale, rotation) taking the dataset `root`'s frame onto the scene's
+    (x_scene = scale R x + t): a synth folder itself (1, I), or an SfM model of one's photos whose
+    sfm_report.json records that similarity; None for any other dataset."""
+    import json
 
     if root is None:
         return None
     root = Path(root)
+    if (root / "scene.toml").is_file():
+        return root, 1.0, np.eye(3)
+    try:
+        report = json.loads((root / "sfm_report.json").read_text())
+        acc = report["accuracy"]
+        frame, synth = acc["to_reference"], Path(acc["reference"]).parent.parent  # SYNTH/sparse/0
+        scale, rotation = float(frame["scale"]), np.asarray(frame["rotation"], np.float64).reshape(3, 3)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (synth, scale, rotation) if (synth / "scene.toml").is_file() else None
+
+
+def ground_truth(root, name: str, width: int, height: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """((H,W) z-depth, (H,W,3) world normals), in the scene's frame, of the view `name` at the
+    loaded size, from the synth folder of `truth_source(root)` (depth/STEM.exr,
+    normals/STEM.exr); None for any other dataset or a view without both files."""
+    from ghsplat_jax.data.images import read_pixels
+
+    source = truth_source(root)
+    if source is None:
+        return None
+    root = source[0]
     stem = Path(name).stem
     depth_file, normal_file = root / "depth" / f"{stem}.exr", root / "normals" / f"{stem}.exr"
-    if not ((root / "scene.toml").is_file() and depth_file.is_file() and normal_file.is_file()):
+    if not (depth_file.is_file() and normal_file.is_file()):
         return None
     depth = np.asarray(read_pixels(depth_file), np.float32)
     normal = np.asarray(read_pixels(normal_file), np.float32)[..., :3]
     return _nearest(depth, width, height), _nearest(normal, width, height)
 
 
-def geometry_errors(depth, normal, alpha, true_depth, true_normal) -> dict[str, float]:
+def geometry_errors(depth, normal, alpha, true_depth, true_normal, scale: float = 1.0,
+                    rotation=None) -> dict[str, float]:
     """The errors above of one view from its (H,W) median depth (None: not rendered), (H,W,3)
-    alpha-weighted normal and (H,W) alpha against the ground truth; {} when the view shows no
-    surface or the model covers none of it."""
+    alpha-weighted normal and (H,W) alpha against the ground truth, the model's depth times
+    `scale` and its normals turned by `rotation` into the scene's frame first (truth_source);
+    {} when the view shows no surface or the model covers none of it."""
     alpha = np.asarray(alpha, np.float32)
+    depth = None if depth is None else np.asarray(depth, np.float64) * scale
+    normal = np.asarray(normal, np.float64)
+    if rotation is not None:
+        normal = normal @ np.asarray(rotation, np.float64).T
     surface = np.asarray(true_depth) > 0
     covered = surface & (alpha > COVERED_ALPHA)
     if not covered.any():

@@ -104,8 +104,24 @@ def _options(prep: dict, source):
 def _is_done(seg: Segment) -> dict | None:
     report = seg.sfm_dir / "sfm_report.json"
     if report.is_file() and (seg.sfm_dir / "sparse" / "0").is_dir():
-        return json.loads(report.read_text())
+        return _with_reference_frame(seg, json.loads(report.read_text()))
     return None
+
+
+def _with_reference_frame(seg: Segment, report: dict) -> dict:
+    """A report written before the accuracy recorded its similarity onto the exact cameras
+    (which evaluation needs for depth and normal errors) gets it now, from the same two models."""
+    from ghsplat_jax.sfm.evaluate import compare_model_dirs
+
+    acc = report.get("accuracy")
+    if not acc or "to_reference" in acc or not (seg.photos_dir / "sparse" / "0").is_dir():
+        return report
+    fresh = compare_model_dirs(seg.sfm_dir / "sparse" / "0", seg.photos_dir / "sparse" / "0")
+    if fresh is None:
+        return report
+    report = dict(report, accuracy=acc | {k: fresh[k] for k in ("to_reference", "reference")})
+    write_json(seg.sfm_dir / "sfm_report.json", report)
+    return report
 
 
 def _make(seg: Segment, world, capture: Capture, sfm_options) -> dict:

@@ -30,7 +30,8 @@ def compare_poses(est_w2c: np.ndarray, ref_w2c: np.ndarray) -> dict:
     """Camera-centre and rotation errors of matched cameras after a similarity alignment.
 
     Centre errors are also given relative to the reference extent (the largest distance
-    of a reference centre from their centroid, times two).
+    of a reference centre from their centroid, times two). `to_reference` is the similarity
+    itself, x_ref = scale R x_est + t (evaluation carries a model into the reference's frame).
     """
     est_c, ref_c = camera_centres(est_w2c), camera_centres(ref_w2c)
     scale, rot, t = umeyama(est_c, ref_c)
@@ -51,6 +52,7 @@ def compare_poses(est_w2c: np.ndarray, ref_w2c: np.ndarray) -> dict:
         "centre_error_max_rel": float(centre_err.max() / extent),
         "rotation_error_max_deg": float(rot_err.max()),
         "rotation_error_mean_deg": float(rot_err.mean()),
+        "to_reference": {"scale": scale, "rotation": rot.tolist(), "translation": t.tolist()},
     }
 
 
@@ -96,4 +98,5 @@ def compare_model_dirs(estimate, reference) -> dict | None:
     names = sorted(set(est) & set(ref))
     if len(names) < 3:
         return None
-    return compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
+    result = compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
+    return result | {"reference": str(Path(reference).resolve())}
