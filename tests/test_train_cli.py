@@ -62,7 +62,11 @@ def test_train_and_eval_commands(data_dir, tmp_path, capsys):
         assert np.array_equal(read_pixels(path), read_pixels(evaluated)), path.name
     per_view = json.loads((out / "per_view.json").read_text())
     assert len(per_view) == 6 and all(v["render_seconds"] > 0 for v in per_view)
-    # `ghsplat eval` reproduces the metrics from the saved files
+    # `ghsplat eval` reproduces the metrics from the saved files, and keeps what training recorded
+    assert cli.main(["eval", str(out), "--no-progress"]) == 0
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["code_revision"] == m["code_revision"] and again["machine"] == m["machine"]
+    assert again["evaluated"]["code_revision"] and again["test"]["psnr"] == pytest.approx(m["test"]["psnr"], abs=0.05)
     (out / "metrics.json").unlink()
     assert cli.main(["eval", str(out), "--no-progress", "--report", str(tmp_path / "rep")]) == 0
     m2 = json.loads((out / "metrics.json").read_text())

@@ -216,10 +216,15 @@ def test_curve_metrics(dataset, config):
     return measure
 
 
+TRAINING_RECORD = ("stop", "machine", "code_revision")  # facts of the training a re-evaluation keeps
+
+
 def evaluate_run(run_dir, progress: bool = True) -> dict:
     """Re-evaluate a run folder from its config and point_cloud.ply. An unfinished run (a
     checkpoint but no point_cloud.ply, e.g. stopped with --until) is evaluated at its
-    checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent."""
+    checkpoint into RUN_DIR/snapshots/step_NNNNNN/ so the run's own metrics.json stays absent.
+    A finished run's metrics.json keeps what its training recorded (why it stopped, the machine
+    and code revision it trained with); `evaluated` names this evaluation's."""
     run_dir = Path(run_dir)
     config, surfels, meta, finished = rd.load_run(run_dir)
     seconds, steps = meta.get("train_seconds"), meta.get("step")
@@ -227,11 +232,12 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     if not finished:
         out_dir = rd.snapshot_dir(run_dir, steps)
         log.info("%s: unfinished; evaluating the checkpoint at step %d into %s", run_dir, steps, out_dir)
-    old = None if meta else rd.read_metrics(run_dir)
-    if old:
-        seconds, steps = old.get("train_seconds"), old.get("steps")
+    previous = (rd.read_metrics(run_dir) or {}) if finished else {}
+    if previous and not meta:
+        seconds, steps = previous.get("train_seconds"), previous.get("steps")
     dataset = rd.load_training_data(config)
-    extra = None
+    extra = {k: previous[k] for k in TRAINING_RECORD if k in previous} | {
+        "evaluated": {"machine": machine_info(), "code_revision": code_revision()}}
     pose_file = run_dir / rd.POSE_NAME
     if pose_file.is_file():  # as train_and_evaluate: training views at their refined poses
         import json
@@ -239,7 +245,7 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         from ghsplat_jax.train.pose import refine_views
 
         pose = json.loads(pose_file.read_text())
-        extra = {"pose_refinement": pose["summary"]}
+        extra["pose_refinement"] = pose["summary"]
         dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, pose["views"], pose["scene_extent"]))
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
                     train_peak_rss_mb=meta.get("peak_rss_mb"), extra=extra)
