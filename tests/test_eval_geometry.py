@@ -118,6 +118,7 @@ def test_a_model_in_its_own_frame_is_scored_in_the_scenes_through_the_recorded_s
     onto the exact cameras in its sfm_report.json, its depth and normals are carried into the
     scene's frame and score as the same surfels do there (metres and degrees, not model units)."""
     import json
+    import os
 
     from ghsplat_jax.eval.geometry import truth_source
     from ghsplat_jax.scene.transform import similarity, transform_camera
@@ -127,10 +128,10 @@ def test_a_model_in_its_own_frame_is_scored_in_the_scenes_through_the_recorded_s
     rot = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
     shift = np.array([0.3, -1.0, 0.2])
     sfm = tmp_path / "sfm"
-    sfm.mkdir()
+    (sfm / "sparse" / "0").mkdir(parents=True)
     assert truth_source(sfm) is None  # no report: no ground truth
     (sfm / "sfm_report.json").write_text(json.dumps({"accuracy": {
-        "reference": str(root / "sparse" / "0"),
+        "reference": os.path.relpath(root / "sparse" / "0", sfm / "sparse" / "0"),  # as compare_model_dirs
         "to_reference": {"scale": scale, "rotation": rot.tolist(), "translation": shift.tolist()}}}))
     found, s, r = truth_source(sfm)
     assert found == root and s == scale and np.allclose(r, rot)

@@ -52,7 +52,9 @@ def truth_source(root) -> tuple[Path, float, np.ndarray] | None:
     try:
         report = json.loads((root / "sfm_report.json").read_text())
         acc = report["accuracy"]
-        frame, synth = acc["to_reference"], Path(acc["reference"]).parent.parent  # SYNTH/sparse/0
+        frame = acc["to_reference"]
+        # The reference (SYNTH/sparse/0) is recorded relative to the model compared, ROOT/sparse/0.
+        synth = (root / "sparse" / "0" / acc["reference"]).resolve().parent.parent
         scale, rotation = float(frame["scale"]), np.asarray(frame["rotation"], np.float64).reshape(3, 3)
     except (OSError, ValueError, KeyError, TypeError):
         return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -93,10 +94,12 @@ def model_dir_w2c(model) -> dict[str, np.ndarray]:
 
 def compare_model_dirs(estimate, reference) -> dict | None:
     """compare_poses of two COLMAP model folders over their common images (None below 3),
-    e.g. an SfM model against the generator's exact cameras."""
+    e.g. an SfM model against the generator's exact cameras; `reference` is the reference
+    folder's path relative to the estimate's."""
     est, ref = model_dir_w2c(estimate), model_dir_w2c(reference)
     names = sorted(set(est) & set(ref))
     if len(names) < 3:
         return None
     result = compare_poses(np.stack([est[n] for n in names]), np.stack([ref[n] for n in names]))
-    return result | {"reference": str(Path(reference).resolve())}
+    # Relative to the estimate's model folder where both sit under one tree, so a moved tree keeps the link.
+    return result | {"reference": os.path.relpath(Path(reference).resolve(), Path(estimate).resolve())}
