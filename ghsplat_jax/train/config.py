@@ -127,6 +127,8 @@ class TrainConfig:
     # (one size, spread to cover the image; each window of each view once an epoch): fewer pixels
     # a step, so more steps a second (1: whole images). The densification statistics then see
     # window-sized images: the default strategy's pixel-gradient threshold was set on whole ones.
+    # Measured in the auto recipe (row2_x1, 2 x 2): steps 1.9-2.1x faster, yet 1.4 dB lower test
+    # PSNR at equal training time and 2.3 dB lower at its stop: not part of any recipe.
     crop_tiles: int = 1
 
     # --- initialisation -------------------------------------------------------------------
