@@ -124,7 +124,7 @@ def auto_runs(runs_root: Path) -> list[dict]:
         test = m.get("test") or {}
         stop = m.get("stop") or {}
         out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"),
-                    "psnr": test.get("psnr"), "l1": test.get("l1"), "ssim": test.get("ssim"),
+                    **{k: test.get(k) for k in ("psnr", "l1", "ssim", "lpips", "depth_abs_err", "normal_err_deg")},
                     "train_psnr": (m.get("train") or {}).get("psnr"), "num_gaussians": m.get("num_gaussians"),
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
                     "best_step": stop.get("best_step"), "stop_reason": stop.get("reason"),
@@ -327,12 +327,15 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
     lines += ["", "## Every run", "",
-              "| scene | variant | seed | test PSNR | L1 | SSIM | train PSNR | surfels | train s | steps | kept step | "
-              "load at the end | code | why it stopped |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| scene | variant | seed | test PSNR | L1 | SSIM | LPIPS | depth err (m) | normal err (deg) | "
+              "train PSNR | surfels | train s | steps | kept step | load at the end | code | why it stopped |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         load = (r.get("machine") or {}).get("load_average")
         lines.append(f"| {r['scene']} | {r['variant']} | {r['seed']} | {fmt(r['psnr'])} | {fmt(r['l1'], '.4f')} | "
-                     f"{fmt(r['ssim'], '.3f')} | {fmt(r['train_psnr'])} | {fmt(r['num_gaussians'], ',')} | "
+                     f"{fmt(r['ssim'], '.3f')} | {fmt(r.get('lpips'), '.3f')} | "
+                     f"{fmt(r.get('depth_abs_err'), '.4f')} | {fmt(r.get('normal_err_deg'), '.1f')} | "
+                     f"{fmt(r['train_psnr'])} | {fmt(r['num_gaussians'], ',')} | "
                      f"{fmt(r['train_seconds'], '.0f')} | {r['steps']} | {r['best_step']} | "
                      f"{'-' if not load else ', '.join(f'{x:.1f}' for x in load)} | "
                      f"{(r.get('code_revision') or '-')[:10]} | {r['stop_reason'] or '-'} |")
@@ -342,7 +345,11 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   "|---|---|---|---|---|---|"]
         lines += [f"| {u['scene']} | {u['variant']} | {u['last_scored_step']} | {fmt(u['psnr_then'])} | "
                   f"{fmt(u['num_surfels_then'], ',')} | {fmt(u['train_seconds_then'], '.0f')} |" for u in unfinished]
-    lines += ["", "Training seconds leave out the test scoring (every 500 steps) and include the validation checks "
+    lines += ["", "LPIPS (VGG) and the depth and normal errors are over the test views; the geometry errors are "
+              "against the procedural scene's ray-cast depth and normals, the model carried into the scene's frame by "
+              "its SfM's similarity onto the exact cameras (so they include the SfM's own pose error); '-' where the "
+              "run was not evaluated so.", "",
+              "Training seconds leave out the test scoring (every 500 steps) and include the validation checks "
               "the recipe needs. The reference rows' seconds were measured at earlier code revisions, some on other "
               "hosts and under other loads: read them as recorded, not as a same-machine comparison.", ""]
     return "\n".join(lines)
