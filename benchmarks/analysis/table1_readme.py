@@ -119,6 +119,47 @@ def signed(x: float, spec: str) -> str:
     return s if s.startswith("-") else "+" + s
 
 
+def is_auto_seed(variant: str) -> bool:
+    """The auto recipe's seed variants ("auto", "auto_seedN"), not its ablations."""
+    return variant == "auto" or (variant.startswith("auto_seed") and variant[9:].isdigit())
+
+
+def mean_sd(values: list[float], spec: str) -> str:
+    """'mean ± sample sd' of the values that are there ('-' for none; one value: no spread)."""
+    vals = [v for v in values if v is not None]
+    if not vals:
+        return "-"
+    mean = sum(vals) / len(vals)
+    if len(vals) == 1:
+        return format(mean, spec)
+    sd = (sum((v - mean) ** 2 for v in vals) / (len(vals) - 1)) ** 0.5
+    return f"{format(mean, spec)} ± {format(sd, spec)}"
+
+
+def auto_section(rows: list[dict]) -> list[str]:
+    """The auto recipe's rows, per segment: mean ± sd over its seeds of the test metrics."""
+    auto = [r for r in rows if is_auto_seed(r.get("variant", "")) and r.get("psnr") is not None]
+    if not auto:
+        return []
+    out = ["## The auto recipe (self-sizing, self-stopping)", "",
+           "`recipe = \"auto\"` on the same segments at the same size, one row per segment over the seeds that "
+           "finished (mean ± sample sd); LPIPS (VGG), median depth error and mean normal error on the test views, "
+           "the geometry against the procedural scene's ray-cast depth and normals (the model carried into the "
+           "scene's frame by its SfM's similarity onto the exact cameras, so the SfM's pose error is in them). "
+           "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md).",
+           ""]
+    body = []
+    for s in sorted({r["scene"] for r in auto}):
+        rs = [r for r in auto if r["scene"] == s]
+        col = lambda key: [r.get(key) for r in rs]  # noqa: E731
+        body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
+                     mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
+                     mean_sd(col("num_gaussians"), ",.0f"), mean_sd(col("train_seconds"), ",.0f")])
+    out += table(["segment", "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
+                  "Gaussians", "training s"], body)
+    return out + [""]
+
+
 # ---------------------------------------------------------------- the README
 
 
@@ -393,6 +434,8 @@ def render(data: dict) -> str:
                "planned run's row from there when its folder has no `metrics.json` (with a warning), so such rows stay "
                "in the table as other segments finish.")
     out.append("")
+
+    out += auto_section(rows)
 
     # -------- SfM
     ok = [s for s in seginfo.values() if s["status"] == "ok"]
