@@ -138,6 +138,9 @@ class TrainConfig:
     init_max_points: int = 0            # subsample dataset points to at most this many (0: all)
     init_scale_max: float = 0.0         # clamp of the initial scale as a fraction of the extent (0: none)
     random_init_scale: float = 0.5      # random points: multiple of the nearest-neighbour scale (see random_init.py)
+    # Random points for a subject on a plain background (an alpha channel, or most of each view near
+    # its border's colour) keep only those inside the subject's visual hull (train/carve.py).
+    init_carve: bool = True
 
     # --- recipe -----------------------------------------------------------------------------
     # A named set of settings laid under the other overrides that set it (train/recipes.py): "" is

@@ -28,6 +28,7 @@ from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import optim
 from ghsplat_jax.train import pose as pose_mod
+from ghsplat_jax.train.carve import subject_points
 from ghsplat_jax.train.config import TrainConfig, save_config
 from ghsplat_jax.train.resolution import (
     box_downscale,
@@ -168,16 +169,24 @@ def hold_out(views: list, every: int) -> tuple[list, list]:
     return [v for i, v in enumerate(views) if i not in picked], [v for i, v in enumerate(views) if i in picked]
 
 
-def warn_about_inputs(config: TrainConfig, dataset) -> list[str]:
+def finite_points(points) -> int:
+    """How many of a dataset's points (None: none) are finite."""
+    return 0 if points is None else int(np.sum(np.all(np.isfinite(points), axis=1)))
+
+
+def warn_about_inputs(config: TrainConfig, dataset, carved: int | None = None) -> list[str]:
     """Warn (and return the messages) where the inputs predict a poor model that training itself
-    cannot notice: random initialisation for want of SfM points, or too few training views."""
+    cannot notice: random initialisation for want of SfM points (`carved`: that many of them kept
+    inside the subject's silhouettes), or too few training views."""
     messages = []
-    points = 0 if dataset.points is None else int(np.sum(np.all(np.isfinite(dataset.points), axis=1)))
+    points = finite_points(dataset.points)
     if needs_random_init(points, config):
+        start = (f"{carved} random points inside the subject's silhouettes" if carved else
+                 f"{config.init_random_points} random points in the camera box")
         messages.append(
             f"{config.data}: {points} SfM points (init_min_points is {config.init_min_points}), so the surfels start "
-            f"at {config.init_random_points} random points in the camera box; expect lower accuracy and slower "
-            f"steps than from SfM points (run `ghsplat sfm` and train on its model)")
+            f"at {start}; expect lower accuracy and slower steps than from SfM points (run `ghsplat sfm` and train "
+            "on its model)")
     if len(dataset.train) < FEW_TRAIN_VIEWS:
         messages.append(
             f"{config.data}: only {len(dataset.train)} training views (fewer than {FEW_TRAIN_VIEWS}); novel views "
@@ -240,8 +249,16 @@ class TrainingSession:
         c = self.config
         rng = np.random.default_rng(c.seed)
         box = random_init_box([v.camera for v in self.ds.train], self.ds.scene_center, 0.5 * self.extent)
-        init = initial_surfels(self.ds.points, self.ds.point_colors, *box, self.extent, c, rng)
-        warn_about_inputs(c, self.ds)
+        points, colors = self.ds.points, self.ds.point_colors
+        carved = None
+        if c.init_carve and needs_random_init(finite_points(points), c):
+            carved = subject_points(self.ds.train, *box, c.init_random_points, rng)
+        if carved is not None:
+            points, colors = carved
+            log.info("%s: %d initial points inside the subject's silhouettes (a plain background in the views)",
+                     c.data, len(points))
+        init = initial_surfels(points, colors, *box, self.extent, c, rng)
+        warn_about_inputs(c, self.ds, carved=None if carved is None else len(carved[0]))
         init, cap = self.strategy.initial_pool(init, rng)
         self.initial_count = init.num
         self.sstate = self.strategy.init_state(init.num)
