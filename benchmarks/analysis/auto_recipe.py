@@ -123,7 +123,7 @@ def auto_runs(runs_root: Path) -> list[dict]:
         cfg = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
         test = m.get("test") or {}
         stop = m.get("stop") or {}
-        out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"),
+        out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"), "settings": flat(cfg),
                     **{k: test.get(k) for k in ("psnr", "l1", "ssim", "lpips", "depth_abs_err", "normal_err_deg")},
                     "train_psnr": (m.get("train") or {}).get("psnr"), "num_gaussians": m.get("num_gaussians"),
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
@@ -178,15 +178,40 @@ def equal_time(scene: str, runs: list[dict], curves: list[dict]) -> dict:
     return row
 
 
+BASES = ("auto", "auto_normal2k")  # the recipe's seed-0 run, and the previous recipe's
+NOT_SETTINGS = {"seed", "test_curve_every", "progress", "checkpoint_every"}  # no part of the method
+
+
+def flat(config: dict, prefix: str = "") -> dict:
+    """A run's config.toml as {dotted key: value}."""
+    out = {}
+    for k, v in config.items():
+        if isinstance(v, dict):
+            out |= flat(v, f"{prefix}{k}.")
+        elif k not in NOT_SETTINGS:
+            out[prefix + k] = v
+    return out
+
+
+def differences(a: dict, b: dict) -> list[str]:
+    """The settings two runs' configs differ in."""
+    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+
+
 def ablations(runs: list[dict]) -> list[dict]:
-    """Each ablation run against its scene's seed-0 auto run: what leaving the part out costs."""
-    base = {r["scene"]: r for r in runs if r["variant"] == "auto"}
+    """Each ablation run against the scene's base run (BASES) whose settings it differs least
+    from, with the settings they differ in: what the ablated part changes. The previous recipe's
+    run is itself compared with the recipe's."""
     out = []
     for r in runs:
-        b = base.get(r["scene"])
-        if is_seed(r["variant"]) or b is None:
+        bases = [b for b in runs if b["scene"] == r["scene"] and b["variant"] in BASES
+                 and BASES.index(b["variant"]) < (BASES.index(r["variant"]) if r["variant"] in BASES else len(BASES))]
+        if is_seed(r["variant"]) or not bases:
             continue
-        out.append({"scene": r["scene"], "variant": r["variant"], "psnr": r["psnr"],
+        b = min(bases, key=lambda b: (len(differences(r.get("settings") or {}, b.get("settings") or {})),
+                                      BASES.index(b["variant"])))
+        out.append({"scene": r["scene"], "variant": r["variant"], "against": b["variant"], "psnr": r["psnr"],
+                    "differs_in": differences(r.get("settings") or {}, b.get("settings") or {}),
                     "num_gaussians": r["num_gaussians"], "train_seconds": r["train_seconds"],
                     "delta_psnr_db": r["psnr"] - b["psnr"], "delta_seconds": r["train_seconds"] - b["train_seconds"],
                     "count_ratio": r["num_gaussians"] / b["num_gaussians"],
@@ -319,11 +344,13 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                 name = f"auto (mean of {s['seeds']})" if c is None else variant
                 lines.append(f"| {s['scene']} | {name} | " + " | ".join(cells) + f" | {reach} | {code} |")
     if ablated:
-        lines += ["", "## Ablations (each against the same scene's seed-0 auto run)", "",
-                  "| scene | variant | test PSNR | change (dB) | surfels | count x | train s | change (s) "
-                  "| same code |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        lines += [f"| {a['scene']} | {a['variant']} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
+        lines += ["", "## Ablations (each against the same scene's seed-0 run of the recipe, or of its previous "
+                  "version, whichever it differs from in fewer settings)", "",
+                  "| scene | variant | against | differs in | test PSNR | change (dB) | surfels | count x | train s | "
+                  "change (s) | same code |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {a['scene']} | {a['variant']} | {a.get('against', 'auto')} | "
+                  f"{', '.join(a.get('differs_in') or []) or '-'} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
     lines += ["", "## Every run", "",
