@@ -7,7 +7,11 @@ override (a recipe's table, then the config file, then the command line).
   threshold; a validation split carved from the training views; a stop on a validation plateau
   (after one annealing of the means learning rate), keeping the best check's model; images at
   reduced resolution early, raised by their spectrum (DashGaussian); the means' learning rate
-  decaying over 10k steps instead of 30k; `steps` only a ceiling.
+  decaying over 10k steps instead of 30k; `steps` only a ceiling. The normal-consistency loss keeps
+  2DGS's start (step 7,000), which a run that stops itself often does not reach: from step 2,000
+  it cost 1.38 dB of test PSNR on row2_x1 (28.01 against 29.39) for better normals (20 against 34
+  degrees mean error; median depth error 3.1 against 4.1 cm). Where geometry comes first (depth
+  or LiDAR renders), set normal_from = 2000.
 """
 
 from __future__ import annotations
@@ -22,7 +26,6 @@ RECIPES: dict[str, dict] = {
         "res_schedule": "spectrum",
         "res_until": 2000,
         "densify_from": 300,
-        "normal_from": 2000,
         # The means' rate decays 100x by step 10,000, not 30,000: a run that stops itself ends
         # near there, and a position rate still at a third of its start would end it unsettled.
         "lr_means_steps": 10_000,
