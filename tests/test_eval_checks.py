@@ -59,12 +59,12 @@ def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
             + [{"split": "train", "name": "bad_pose.jpg", "psnr": 25.0}]
             + [{"split": "test", "name": f"s{i}", "psnr": 26.0} for i in range(3)])
     metrics = {"train": {"psnr": 34.3, "structure_psnr": 30.0, "structure_gain_db": 14.0},
-               "test": {"psnr": 26.0, "structure_psnr": 12.0, "structure_gain_db": 1.5}}
+               "test": {"psnr": 26.0, "structure_psnr": 12.0, "structure_gain_db": 0.5}}
     with caplog.at_level(logging.WARNING, logger="ghsplat.eval"):
         out = diagnose(metrics, rows, where="RUN")
     assert out["outlier_views"]["train"][0]["name"] == "bad_pose.jpg" and out["outlier_views"]["test"] == []
     assert abs(out["train_test_gap_db"] - 8.3) < 1e-9
-    assert out["missing_structure_db"] == {"test": 1.5}
+    assert out["missing_structure_db"] == {"test": 0.5}
     text = caplog.text
     assert "bad_pose.jpg (25.00 dB)" in text and "bad pose" in text
     assert "over-fits" in text and "--recipe auto" in text

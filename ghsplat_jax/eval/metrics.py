@@ -152,10 +152,10 @@ def structure_metrics(rendered, target, alpha=None) -> dict[str, float]:
             "structure_gain_db": float(10.0 * np.log10(blank_mse / mse))}
 
 
-# The render must remove at least half of an empty render's squared error where the photos show
-# structure: a model that misses the subject gains ~0 dB; the stability study's thin plant,
-# reconstructed, gains 6-8 dB and greenhouse rows over 10.
-STRUCTURE_MIN_GAIN_DB = 3.0
+# The render must remove at least a fifth of an empty render's squared error where the photos
+# show structure: a model that misses the subject gains ~0 dB; the stability study's quick-preset
+# greenhouse row, a blurred 13.5 dB model at 64x48, gains 1.5-2.3 dB and a Table 1 segment 8.4.
+STRUCTURE_MIN_GAIN_DB = 1.0
 
 
 def missing_structure(summary: dict, min_gain_db: float = STRUCTURE_MIN_GAIN_DB) -> float | None:
