@@ -188,13 +188,15 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
 
     report = load_benchmark("auto_recipe")
     runs, out = tmp_path / "runs", tmp_path / "out"
-    _fake_run(runs, "seg", "auto", 28.0, 30000, 700.0, [(100, 25.5), (400, 27.2), (650, 28.0)])
+    recipe = "res_schedule = 'spectrum'\n"
+    _fake_run(runs, "seg", "auto", 28.0, 30000, 700.0, [(100, 25.5), (400, 27.2), (650, 28.0)], settings=recipe)
     _fake_run(runs, "seg", "auto_seed1", 27.6, 32000, 640.0, [(120, 26.1), (500, 27.6)], seed=1)
-    _fake_run(runs, "seg", "auto_nores", 27.5, 31000, 900.0, [(300, 26.0), (900, 27.5)], settings="res = 'none'\n")
+    _fake_run(runs, "seg", "auto_nores", 27.5, 31000, 900.0, [(300, 26.0), (900, 27.5)],
+              settings="res_schedule = 'none'\n")
     # The previous recipe's run, and an ablation of it: compared with it, not with the recipe.
-    _fake_run(runs, "seg", "auto_normal2k", 27.0, 30000, 700.0, [(700, 27.0)], settings="normal_from = 2000\n")
+    _fake_run(runs, "seg", "auto_normal2k", 27.0, 30000, 700.0, [(700, 27.0)], settings="normal_from = 2000\n" + recipe)
     _fake_run(runs, "seg", "auto_old_nores", 26.0, 30000, 900.0, [(900, 26.0)],
-              settings="normal_from = 2000\nres = 'none'\n")
+              settings="normal_from = 2000\nres_schedule = 'none'\n")
     ref = tmp_path / "ref.json"
     ref.write_text(json.dumps({"rows": [{"scene": "seg", "variant": "compact", "psnr": 29.0, "num_gaussians": 30500,
                                          "train_seconds": 2500.0}]}))
@@ -208,9 +210,10 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
                                "every_run_within_10_min": False}
     abl, normal2k, old = first["ablations"]
     assert abl["delta_psnr_db"] == pytest.approx(-0.5) and abl["delta_seconds"] == pytest.approx(200.0)
-    assert (abl["against"], abl["differs_in"]) == ("auto", ["res"])
+    assert (abl["against"], abl["differs_in"]) == ("auto", ["res_schedule"])
     assert (normal2k["against"], normal2k["differs_in"]) == ("auto", ["normal_from"])
-    assert (old["against"], old["differs_in"], old["delta_psnr_db"]) == ("auto_normal2k", ["res"], pytest.approx(-1.0))
+    assert (old["against"], old["differs_in"]) == ("auto_normal2k", ["res_schedule"])
+    assert old["delta_psnr_db"] == pytest.approx(-1.0)
     # A run folder that is gone keeps its row from the previous report.
     import shutil
     shutil.rmtree(runs / "seg" / "auto_seed1")
@@ -218,7 +221,7 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
     again = json.loads((out / "results.json").read_text())
     assert [r["variant"] for r in again["runs"]] == ["auto", "auto_nores", "auto_normal2k", "auto_old_nores",
                                                      "auto_seed1"]
-    assert "| seg | auto_nores | auto | res | 27.50 | -0.50 |" in (out / "README.md").read_text()
+    assert "| seg | auto_nores | auto | res_schedule | 27.50 | -0.50 |" in (out / "README.md").read_text()
 
 
 def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):

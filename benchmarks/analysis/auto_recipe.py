@@ -114,8 +114,9 @@ def unfinished_runs(runs_root: Path) -> list[dict]:
     return out
 
 
-def auto_runs(runs_root: Path) -> list[dict]:
-    """One record per finished auto run under RUNS/SCENE/VARIANT."""
+def auto_runs(runs_root: Path, defaults: dict | None = None) -> list[dict]:
+    """One record per finished auto run under RUNS/SCENE/VARIANT. `defaults`: {dotted setting:
+    value} of the settings a run's config.toml may predate (it trained with their defaults)."""
     out = []
     for metrics_path in sorted(runs_root.glob("*/auto*/metrics.json")):
         run = metrics_path.parent
@@ -123,7 +124,8 @@ def auto_runs(runs_root: Path) -> list[dict]:
         cfg = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
         test = m.get("test") or {}
         stop = m.get("stop") or {}
-        out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"), "settings": flat(cfg),
+        out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"),
+                    "settings": (defaults or {}) | flat(cfg),
                     **{k: test.get(k) for k in ("psnr", "l1", "ssim", "lpips", "depth_abs_err", "normal_err_deg")},
                     "train_psnr": (m.get("train") or {}).get("psnr"), "num_gaussians": m.get("num_gaussians"),
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
@@ -194,7 +196,8 @@ def flat(config: dict, prefix: str = "") -> dict:
 
 
 def differences(a: dict, b: dict) -> list[str]:
-    """The settings two runs' configs differ in."""
+    """The settings two runs' configs differ in (auto_runs fills a setting a config predates with
+    its default, as that run trained with it)."""
     return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
 
 
@@ -408,8 +411,9 @@ def main(argv=None) -> int:
     from record import machine_record
 
     from ghsplat_jax.io_utils import atomic_write, code_revision, write_json
+    from ghsplat_jax.train.config import TrainConfig
 
-    runs, unfinished = auto_runs(args.runs), unfinished_runs(args.runs)
+    runs, unfinished = auto_runs(args.runs, flat(TrainConfig().to_dict())), unfinished_runs(args.runs)
     runs = sorted(runs + carried_runs(args.out / "results.json", runs), key=lambda r: (r["scene"], r["variant"]))
     if not runs and not unfinished:
         print(f"no auto runs under {args.runs}", file=sys.stderr)
