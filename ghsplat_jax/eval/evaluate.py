@@ -233,8 +233,8 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         out_dir = rd.snapshot_dir(run_dir, steps)
         log.info("%s: unfinished; evaluating the checkpoint at step %d into %s", run_dir, steps, out_dir)
     previous = (rd.read_metrics(run_dir) or {}) if finished else {}
-    if previous and not meta:
-        seconds, steps = previous.get("train_seconds"), previous.get("steps")
+    if previous:  # the training's own record (a self-stopped run's checkpoint holds its best step, not its last)
+        seconds, steps = previous.get("train_seconds", seconds), previous.get("steps", steps)
     dataset = rd.load_training_data(config)
     extra = {k: previous[k] for k in TRAINING_RECORD if k in previous} | {
         "evaluated": {"machine": machine_info(), "code_revision": code_revision()}}
