@@ -21,6 +21,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: auto_recipe.py
+from auto_recipe import is_seed, spread  # noqa: E402
 from readme_check import report, text_diff  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -119,26 +121,17 @@ def signed(x: float, spec: str) -> str:
     return s if s.startswith("-") else "+" + s
 
 
-def is_auto_seed(variant: str) -> bool:
-    """The auto recipe's seed variants ("auto", "auto_seedN"), not its ablations."""
-    return variant == "auto" or (variant.startswith("auto_seed") and variant[9:].isdigit())
-
-
 def mean_sd(values: list[float], spec: str) -> str:
     """'mean ± sample sd' of the values that are there ('-' for none; one value: no spread)."""
-    vals = [v for v in values if v is not None]
-    if not vals:
+    s = spread(values)
+    if not s["n"]:
         return "-"
-    mean = sum(vals) / len(vals)
-    if len(vals) == 1:
-        return format(mean, spec)
-    sd = (sum((v - mean) ** 2 for v in vals) / (len(vals) - 1)) ** 0.5
-    return f"{format(mean, spec)} ± {format(sd, spec)}"
+    return format(s["mean"], spec) if s["n"] == 1 else f"{format(s['mean'], spec)} ± {format(s['std'], spec)}"
 
 
 def auto_section(rows: list[dict]) -> list[str]:
     """The auto recipe's rows, per segment: mean ± sd over its seeds of the test metrics."""
-    auto = [r for r in rows if is_auto_seed(r.get("variant", "")) and r.get("psnr") is not None]
+    auto = [r for r in rows if is_seed(r.get("variant", "")) and r.get("psnr") is not None]
     if not auto:
         return []
     out = ["## The auto recipe (self-sizing, self-stopping)", "",
