@@ -96,8 +96,8 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     rcfg = dataclasses.replace(config.raster, pair_capacity=capacity)
     rows, times = [], []
     warm = False
-    root = getattr(dataset, "root", None)
-    frame = truth_source(root)  # where ground truth exists: the dataset's frame onto the scene's
+    # Where ground truth exists: its synth folder, and the similarity of the dataset's frame onto the scene's.
+    frame = truth_source(getattr(dataset, "root", None))
     for split, views in splits.items():
         for v in tqdm(views, desc=f"eval {split}", disable=not progress, leave=False):
             if not warm:  # compile outside the timing
@@ -112,7 +112,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
                  | background_cover(out.alpha, v.alpha))
             if split == "test" and config.eval_lpips:  # the papers report it on test views; a VGG pass is costly
                 m |= lpips_metrics(out.rgb, v.image)
-            truth = ground_truth(root, v.name, v.camera.width, v.camera.height)
+            truth = None if frame is None else ground_truth(frame[0], v.name, v.camera.width, v.camera.height)
             if truth is not None:  # a synth scene: depth and normal error against its ray-cast geometry
                 m |= geometry_errors(out.median_depth if rcfg.median else None, out.normal, out.alpha, *truth,
                                      scale=frame[1], rotation=frame[2])
