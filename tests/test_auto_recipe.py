@@ -169,6 +169,11 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
     # The first steps trained on half-size images: the schedule reached full size at step 20.
     assert (tmp_path / "run" / "point_cloud.ply").is_file() and math.isfinite(metrics["test"]["psnr"])
     assert metrics["num_gaussians"] > 0 and metrics["recipe"] == "auto" and metrics["strategy"] == "auto"
+    # Compaction at the end: the kept model is the compacted one, within its allowed validation loss.
+    c = metrics["compaction"]
+    assert c["after"] == metrics["num_gaussians"] <= c["before"]
+    assert c["val_psnr_before"] == pytest.approx(stop["best_val_psnr"], abs=1e-3)
+    assert c["val_psnr_before"] - c["val_psnr_after"] <= c["max_loss_db"] + 1e-6
 
 
 def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):

@@ -73,3 +73,16 @@ def test_camera_look_at_and_centre():
     half = cam.scaled(0.5)
     assert (half.width, half.height) == (32, 24)
     np.testing.assert_allclose(half.K[0, 2], 16.0)
+
+
+def test_project_points_lands_the_target_on_the_principal_point_and_keeps_z_finite():
+    from ghsplat_jax.core.camera import project_points
+
+    w2c = gs.look_at([1.0, -2.0, 0.5], [0.0, 0.0, 0.5])
+    K = gs.intrinsics(64, 48, 90)
+    xy, z = project_points([[0.0, 0.0, 0.5], [1.0, -2.0, 1.5]], K, w2c)
+    np.testing.assert_allclose(xy[0], K[:2, 2], atol=1e-5)
+    np.testing.assert_allclose(z[0], np.sqrt(5.0), rtol=1e-6)  # the target's distance along the axis
+    assert xy[1, 1] < 0  # straight above the camera: towards the image's top
+    xy, z = project_points([[0.3, 0.2, 0.0]], K, np.eye(4))
+    assert z[0] == 0 and np.isfinite(xy).all()  # in the camera's plane: finite, never NaN

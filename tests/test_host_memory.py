@@ -42,3 +42,21 @@ def test_freed_blocks_are_reused_without_page_faults():
     # With the system policy every round maps and faults the block in again.
     assert system_faults > 50
     assert faults < system_faults / 20
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="Linux's per-process mapping count")
+def test_compiled_programs_are_released_near_the_mapping_limit_and_their_mappings_go():
+    import jax
+    import jax.numpy as jnp
+
+    def compile_some(n):
+        for i in range(n):
+            jax.jit(lambda x, i=i: jnp.cumsum(x) * i)(jnp.ones(7 + i)).block_until_ready()
+
+    count, limit = host_memory.memory_maps()
+    assert 0 < count < limit
+    assert not host_memory.release_compiled_programs(share=1.0)  # under the limit: nothing dropped
+    compile_some(40)
+    before = host_memory.memory_maps()[0]
+    assert host_memory.release_compiled_programs(share=0.0)
+    assert host_memory.memory_maps()[0] < before - 40  # each program held mappings of its own

@@ -121,6 +121,60 @@ def test_contribution_weights_sum_to_the_rendered_alpha_and_pruning_uses_the_thr
     np.testing.assert_array_equal(np.asarray(new.active), np.asarray(s.active) & ~expect)
 
 
+def test_largest_safe_count_bisects_to_the_last_count_within_the_loss():
+    from ghsplat_jax.train.compaction import largest_safe_count
+
+    calls = []
+
+    def loss(k):  # no loss up to 300 of 1000, then 0.01 dB more per surfel
+        calls.append(k)
+        return max(0.0, (k - 300) * 0.01)
+
+    k = largest_safe_count(loss, 1000, max_loss_db=0.5)
+    assert 350 - 1000 / 256 <= k <= 350 and loss(k) <= 0.5 and len(calls) <= 12
+    assert largest_safe_count(lambda k: 0.0, 1000, 0.1) == 900  # never more than 90%
+    assert largest_safe_count(lambda k: 1.0 if k else 0.0, 1000, 0.1) == 0
+    assert largest_safe_count(loss, 0, 0.1) == 0
+
+
+def test_compaction_removes_what_no_view_sees_and_keeps_what_validation_needs():
+    """48 surfels in front of the camera and 16 behind it: with no loss allowed, compaction
+    removes exactly the 16 the view cannot see, and the model renders as before."""
+    from ghsplat_jax.raster.config import RasterConfig
+    from ghsplat_jax.raster.render import render
+    from ghsplat_jax.train.compaction import compact_model, lowest_mask
+    from ghsplat_jax.train.state import render_params
+
+    cam = camera(32, 24)
+    scene = random_scene(64, seed=3, degree=1)
+    centre, backward = np.asarray(cam.center), -np.asarray(cam.world_to_cam)[2, :3]
+    hidden = np.zeros(64, bool)
+    hidden[48:] = True
+    means = np.where(hidden[:, None], centre + 0.5 * backward + 0.01 * np.arange(64)[:, None], scene.means)
+    params, active = pad_params(dataclasses.replace(scene, means=means), 80)
+    s = new_state(params, active, optim.make_optimizers(CONFIG))
+    K, w2c = jnp.asarray(cam.K, jnp.float32), jnp.asarray(cam.world_to_cam, jnp.float32)
+    ctx = strat.StrategyContext(extent=1.0, Ks=K[None], w2cs=w2c[None], width=32, height=24, pair_capacity=4096,
+                                means_lr=lambda i: 0.0, raster=RasterConfig())
+    weight = strat.accumulated_weights(ctx, s)
+    assert np.all(np.asarray(weight)[48:64] == 0) and np.all(np.asarray(weight)[:48] > 0)
+    mask = np.asarray(lowest_mask(s.active, weight, jnp.int32(20)))
+    assert mask.sum() == 20 and mask[48:64].all() and not mask[64:].any()
+
+    def rgb(state):
+        return np.asarray(render(render_params(state.params, state.active, w2c), cam, RasterConfig()).rgb, np.float64)
+
+    target = rgb(s)
+
+    def validate(state):  # PSNR against the full model's own render (100 dB when identical)
+        return float(-10 * np.log10(np.mean((rgb(state) - target) ** 2) + 1e-10))
+
+    small, rec = compact_model(s, weight, validate, max_loss_db=0.0)
+    assert rec["before"] == 64 and rec["after"] == 48 == small.num_active(), rec
+    assert rec["val_psnr_after"] == rec["val_psnr_before"] == 100.0 and small.capacity <= s.capacity
+    np.testing.assert_allclose(rgb(small), target, atol=1e-6)
+
+
 def test_config_validation_names_the_setting():
     with pytest.raises(ConfigError, match="strategy must be one of .*mcmc"):
         TrainConfig(strategy="nonesuch")

@@ -64,6 +64,18 @@ class Camera:
         return Camera(jnp.matmul(scale, self.K, precision=FLOAT32), self.world_to_cam, width, height)
 
 
+def project_points(points, K, world_to_cam) -> tuple[np.ndarray, np.ndarray]:
+    """Host-side pinhole projection in float64: (xy (N,2) pixel coordinates, z (N,) depth along the
+    optical axis) of world points (N,3). A point at z = 0 gets the xy of z = 1 (finite, never
+    NaN); callers keep the depths they trust (z > 0, or a near plane). Pixel (row i, col j)
+    covers [j, j+1) x [i, i+1), so floor(xy) is its pixel."""
+    K, w2c = np.asarray(K, np.float64), np.asarray(world_to_cam, np.float64)
+    cam = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    xy = (cam @ K.T)[:, :2] / np.where(z == 0, 1.0, z)[:, None]
+    return xy, z
+
+
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """world_to_cam (4,4) of an OpenCV camera at `eye` looking at `target`.
 

@@ -216,7 +216,7 @@ def test_curve_metrics(dataset, config):
     return measure
 
 
-TRAINING_RECORD = ("stop", "machine", "code_revision")  # facts of the training a re-evaluation keeps
+TRAINING_RECORD = ("stop", "compaction", "machine", "code_revision")  # facts of the training a re-evaluation keeps
 
 
 def evaluate_run(run_dir, progress: bool = True) -> dict:
@@ -257,6 +257,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     or when stopped early by `until`)."""
     from ghsplat_jax.train import train
     from ghsplat_jax.train.run_dir import load_training_data
+    from ghsplat_jax.train.strategies import make_strategy
 
     if resume:  # a process killed mid-write leaves scratch folders beside the outputs
         from ghsplat_jax.io_utils import remove_scratch
@@ -275,6 +276,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     # Where and with what code it trained (the training seconds depend on both), from this process.
     extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
                                                                    "code_revision": code_revision()}
+    extra |= make_strategy(config).report(result.strategy_state)  # e.g. the auto strategy's compaction
     if result.pose is not None:  # the training views are evaluated at the poses the run refined them to
         from ghsplat_jax.train.pose import refine_views
 

@@ -36,6 +36,7 @@ import traceback
 from pathlib import Path
 
 from ghsplat_jax.eval.evaluate import train_and_evaluate
+from ghsplat_jax.host_memory import release_compiled_programs
 from ghsplat_jax.train.config import ConfigError, TrainConfig, apply_overrides
 from ghsplat_jax.train.run_dir import has_checkpoint, is_evaluated
 
@@ -245,6 +246,7 @@ def run_one(run: PlannedRun, all_runs: list[PlannedRun] | None = None, reported:
     if run.finished:
         log.info("%s/%s: finished, skipped", run.scene, run.variant)
         return None
+    release_compiled_programs()  # many runs in one process: see host_memory
     try:
         run = resolve_count(run, all_runs or [], reported)
         log.info("%s/%s: training into %s (strategy %s%s)", run.scene, run.variant, run.out_dir,

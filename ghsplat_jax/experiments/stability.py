@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.host_memory import release_compiled_programs
 from ghsplat_jax.io_utils import atomic_write, json_safe, machine_info, save_figure, write_json
 
 log = logging.getLogger("ghsplat.stability")
@@ -434,6 +435,7 @@ def _train_seed(case: dict, ctx, seed: int) -> dict:
     from ghsplat_jax.sfm.triangulate import with_triangulated_points
     from ghsplat_jax.train.trainer import train
 
+    release_compiled_programs()
     cfg = _train_config(case, ctx)
     if case.get("dataset"):
         cfg = cfg.replace(data=str(ctx.scenes[case["name"]]))
@@ -752,6 +754,7 @@ def run_study(exp, only: set[str] | None = None) -> dict:
             got = cached["rows"]
         else:
             log.info("%s (%s): running", case["name"], case["family"])
+            release_compiled_programs()  # many runs in one process: see host_memory
             start = time.perf_counter()
             try:
                 got = RUNNERS[case["family"]](case, ctx)

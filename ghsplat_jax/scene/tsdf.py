@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.core.camera import project_points
+
 
 @dataclasses.dataclass
 class TSDFVolume:
@@ -61,13 +63,8 @@ class TSDFVolume:
 
     def _integrate_points(self, offset, points, depth, valid_px, K, w2c, rgb) -> None:
         h, w = depth.shape
-        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[0, 0] * cam[:, 0] / z + K[0, 2]
-            v = K[1, 1] * cam[:, 1] / z + K[1, 2]
-        # pixel (i, j) covers [j, j+1) x [i, i+1): nearest pixel by flooring
-        j, i = np.floor(u), np.floor(v)
+        uv, z = project_points(points, K, w2c)
+        j, i = np.floor(uv[:, 0]), np.floor(uv[:, 1])  # the pixel each voxel centre falls in
         inside = (z > 0) & (j >= 0) & (j < w) & (i >= 0) & (i < h)
         idx = np.flatnonzero(inside)
         ii, jj = i[idx].astype(int), j[idx].astype(int)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.core.camera import project_points
 from ghsplat_jax.data.images import read_pixels, write_image
 from ghsplat_jax.io_utils import atomic_write, write_json
 from ghsplat_jax.scene.tags import save_tags
@@ -75,10 +76,7 @@ def observations(scene: Scene, camera, points: np.ndarray, point_faces: np.ndarr
     """(point indices, pixel xy) of the points visible in `camera`: inside the image, in front,
     and not occluded (a ray from the camera centre first hits the point's own surface)."""
     K, w2c, width, height = camera_arrays(camera)
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = (cam @ K.T)[:, :2] / z[:, None]
+    xy, z = project_points(points, K, w2c)
     inside = (z > 1e-3) & (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
     idx = np.flatnonzero(inside)
     if idx.size == 0:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ghsplat_jax.core.camera import project_points
+
 BACKGROUND_TOLERANCE = 0.08  # colour distance (largest channel difference) that still counts as background
 PLAIN_SHARE = 0.6  # a view's background is plain when at least this share of its pixels is background
 PLAIN_VIEWS = 0.8  # ... and carving needs that of at least this share of the views
@@ -50,12 +52,9 @@ def subject_mask(image, alpha=None) -> tuple[np.ndarray, bool]:
 
 def _project(points: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(row, column, inside) of each point's pixel in `camera` (inside: in front and in the image)."""
-    w2c = np.asarray(camera.world_to_cam, np.float64)
-    K = np.asarray(camera.K, np.float64)
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
+    uv, z = project_points(points, camera.K, camera.world_to_cam)
     front = z > 1e-6
-    uv = (cam[:, :2] / np.where(front, z, 1.0)[:, None]) @ K[:2, :2].T + K[:2, 2]
+    uv = np.where(front[:, None], uv, -1.0)  # behind the camera: outside (and never cast from inf)
     col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     inside = front & (col >= 0) & (row >= 0) & (col < camera.width) & (row < camera.height)
     return np.where(inside, row, 0), np.where(inside, col, 0), inside

@@ -329,7 +329,8 @@ class TrainingSession:
     def context(self) -> StrategyContext:
         return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
                                pair_capacity=self.pair_capacity, means_lr=self.means_lr, raster=self.config.raster,
-                               render_fn=self.render_fn)
+                               render_fn=self.render_fn,
+                               validate=(lambda state: self.validate(state)["psnr"]) if self.config.val_every else None)
 
     def _hook(self, name: str, *args) -> dict:
         """Call a strategy hook on the current state; keep what it returns."""
@@ -373,14 +374,15 @@ class TrainingSession:
         item = view_order(c.seed, step, n * tiles)
         return item // tiles, crops[item], crop_Ks[item], w, h
 
-    def validate(self) -> dict:
-        """The held-out views' mean PSNR (and L1) of the current model, at full resolution."""
+    def validate(self, state: TrainState | None = None) -> dict:
+        """The held-out views' mean PSNR (and L1) of the current model (or of `state`), at full
+        resolution."""
         from ghsplat_jax.raster.render import render
         from ghsplat_jax.train.losses import l1, psnr
         from ghsplat_jax.train.state import render_params
 
         lean = dataclasses.replace(self.config.raster, median=False, distortion=False, depth_normal=False)
-        s, psnrs, l1s = self.state, [], []
+        s, psnrs, l1s = self.state if state is None else state, [], []
         # The checks keep a pair buffer of their own: while training runs at reduced resolution its
         # buffer shrinks to fit, and a shared one would see-saw between the two sizes, compiling the
         # step and the check's render again at every check.

@@ -18,6 +18,11 @@ checks the count grows 20-30%, and a 0.2 dB dip then reads as a dB per doubling)
 of the last two checks standing for "now" (a check right after a growth round dips while the
 new surfels settle). `max_surfels` is a safety ceiling only (0: one surfel per pixel of a
 training image x `ceiling_per_pixel`).
+
+At the end (after the stop rule has restored its best check's model), compaction removes the
+surfels that carry least blending weight over the training views, as many as cost at most
+`compact_max_loss_db` of validation PSNR (train/compaction.py): growth judged on a converging
+model overshoots, and a quarter or more of a finished model adds next to nothing to any view.
 """
 
 from __future__ import annotations
@@ -31,8 +36,9 @@ import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.train import densify
+from ghsplat_jax.train.compaction import compact_model
 from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
-from ghsplat_jax.train.strategies.base import register
+from ghsplat_jax.train.strategies.base import accumulated_weights, register
 from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round
 
 log = logging.getLogger("ghsplat.train")
@@ -53,6 +59,9 @@ class AutoSettings(MCMCSettings):
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
         ceiling_per_pixel: the ceiling when max_surfels is 0.
+        compact: at the end, remove the surfels of least blending weight over the training views
+            that validation can spare (needs a validation split: val_every > 0).
+        compact_max_loss_db: the validation PSNR compaction may cost (dB).
         min_opacity, noise_lr: as MCMCSettings.
     """
 
@@ -60,6 +69,8 @@ class AutoSettings(MCMCSettings):
     min_gain_db: float = 0.5
     growth_weight: str = "error"
     ceiling_per_pixel: float = 2.0
+    compact: bool = True
+    compact_max_loss_db: float = 0.05
 
     def validate(self) -> None:
         super().validate()
@@ -71,6 +82,8 @@ class AutoSettings(MCMCSettings):
             raise ValueError(f"growth_weight must be one of {GROWTH_WEIGHTS}, got {self.growth_weight!r}")
         if not self.ceiling_per_pixel > 0:
             raise ValueError(f"ceiling_per_pixel must be positive, got {self.ceiling_per_pixel}")
+        if not self.compact_max_loss_db >= 0:
+            raise ValueError(f"compact_max_loss_db must be >= 0, got {self.compact_max_loss_db}")
 
 
 def growth_weights(state: TrainState, kind: str) -> jax.Array:
@@ -126,7 +139,8 @@ class AutoStrategy(MCMCStrategy):
         return dict(base, max_surfels=jnp.int32(self.settings.max_surfels), growing=jnp.int32(1),
                     relocated=jnp.zeros((), jnp.int32), added=jnp.zeros((), jnp.int32),
                     checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0), last_psnr=jnp.float32(-jnp.inf),
-                    frozen_at=jnp.int32(0))
+                    frozen_at=jnp.int32(0), compacted_from=jnp.int32(0), compacted_to=jnp.int32(0),
+                    compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0))
 
     def ceiling(self, ctx, sstate) -> int:
         s = self.settings
@@ -174,5 +188,28 @@ class AutoStrategy(MCMCStrategy):
             return sstate, {"growth_stopped": now[0]}
         return sstate, {}
 
+    def at_end(self, ctx, state, sstate):
+        state, sstate, info = super().at_end(ctx, state, sstate)
+        s = self.settings
+        if not s.compact or ctx.validate is None:
+            return state, sstate, info
+        weight = accumulated_weights(ctx, state)
+        state, rec = compact_model(state, weight, ctx.validate, s.compact_max_loss_db)
+        log.info("compaction: %d -> %d surfels (the least blending weight over the training views); validation "
+                 "PSNR %.2f -> %.2f dB (%d checks)", rec["before"], rec["after"], rec["val_psnr_before"],
+                 rec["val_psnr_after"], rec["validations"])
+        sstate = dict(sstate, compacted_from=jnp.int32(rec["before"]), compacted_to=jnp.int32(rec["after"]),
+                      compact_val_before=jnp.float32(rec["val_psnr_before"]),
+                      compact_val_after=jnp.float32(rec["val_psnr_after"]))
+        return state, sstate, info | {"compacted": rec["before"] - rec["after"]}
+
     def meta(self, sstate: dict) -> dict:
         return super().meta(sstate) | {"growing": bool(sstate["growing"]), "frozen_at": int(sstate["frozen_at"])}
+
+    def report(self, sstate: dict) -> dict:
+        if not int(sstate.get("compacted_from", 0)):
+            return {}
+        return {"compaction": {"before": int(sstate["compacted_from"]), "after": int(sstate["compacted_to"]),
+                               "val_psnr_before": round(float(sstate["compact_val_before"]), 4),
+                               "val_psnr_after": round(float(sstate["compact_val_after"]), 4),
+                               "max_loss_db": self.settings.compact_max_loss_db}}

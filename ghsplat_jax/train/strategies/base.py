@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ghsplat_jax.train import optim
-from ghsplat_jax.train.state import INACTIVE_LOGIT, TrainState, render_params
+from ghsplat_jax.train.compaction import free_slots
+from ghsplat_jax.train.state import TrainState, render_params
 
 log = logging.getLogger("ghsplat.train")
 
@@ -122,6 +122,8 @@ class StrategyContext:
     means_lr: Callable[[int], float]  # the means learning rate of a step
     raster: object           # the run's RasterConfig
     render_fn: Callable | None = None
+    validate: Callable[[TrainState], float] | None = None  # held-out views' mean PSNR of a state (runs with
+                                                           # a validation split; else None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,6 +172,10 @@ class Strategy:
 
     def meta(self, sstate: dict) -> dict:
         return {"max_surfels": int(sstate.get("max_surfels", 0)), "strategy": self.name}
+
+    def report(self, sstate: dict) -> dict:
+        """Facts of the finished run for metrics.json (JSON values; none by default)."""
+        return {}
 
     # -- the reusable pruning pass --------------------------------------------------------
     def contribution_pass(self, ctx, state, sstate):
@@ -235,11 +241,7 @@ def accumulated_weights(ctx: StrategyContext, state: TrainState, max_views: int 
 def contribution_prune(state: TrainState, weight: jax.Array, threshold: jax.Array) -> tuple[TrainState, jax.Array]:
     """Free the slots of live surfels whose accumulated weight is under `threshold`."""
     prune = state.active & (weight < threshold)
-    params = dataclasses.replace(state.params,
-                                 opacity_logits=jnp.where(prune, INACTIVE_LOGIT, state.params.opacity_logits))
-    new = dataclasses.replace(state, params=params, active=state.active & ~prune,
-                              opt_state=optim.reset_rows(state.opt_state, prune))
-    return new, jnp.sum(prune)
+    return free_slots(state, prune), jnp.sum(prune)
 
 
 # ----------------------------------------------------------------------------- helpers
