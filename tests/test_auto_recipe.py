@@ -148,7 +148,8 @@ def test_auto_recipe_is_a_table_under_the_other_settings():
         TrainConfig(stop_patience=3)
 
 
-def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
+@pytest.mark.parametrize("at_freeze", [False, True])
+def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_freeze):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
@@ -157,6 +158,7 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
                                 stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
                                 normal_from=0, lr_sh_dc=0.02, sh_degree=1, sh_increase_every=10, progress=False,
                                 checkpoint_every=1000, pair_capacity=16384)
+    cfg = cfg.replace(**{"strategy.compact_at_freeze": at_freeze})
     assert cfg.replace(recipe="auto").val_every == 10  # the same recipe again changes nothing
     metrics = train_and_evaluate(cfg, tmp_path / "run", dataset=ds)
     stop = metrics["stop"]
@@ -174,6 +176,11 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path):
     assert c["after"] == metrics["num_gaussians"] <= c["before"]
     assert c["val_psnr_before"] == pytest.approx(stop["best_val_psnr"], abs=1e-3)
     assert c["val_psnr_before"] - c["val_psnr_after"] <= c["max_loss_db"] + 1e-6
+    if at_freeze:  # compacted where the count froze too, and trained on with the rest
+        f = c["at_freeze"]
+        assert f["after"] <= f["before"] and 0 < f["step"] < stop["stopped_at"]
+    else:
+        assert "at_freeze" not in c
 
 
 def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):

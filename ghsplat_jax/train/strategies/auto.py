@@ -62,6 +62,8 @@ class AutoSettings(MCMCSettings):
         compact: at the end, remove the surfels of least blending weight over the training views
             that validation can spare (needs a validation split: val_every > 0).
         compact_max_loss_db: the validation PSNR compaction may cost (dB).
+        compact_at_freeze: compact also when the count stops growing (the surfels that are left
+            train on, the freed slots stay empty), so the rest of the run steps with fewer.
         min_opacity, noise_lr: as MCMCSettings.
     """
 
@@ -71,6 +73,7 @@ class AutoSettings(MCMCSettings):
     ceiling_per_pixel: float = 2.0
     compact: bool = True
     compact_max_loss_db: float = 0.05
+    compact_at_freeze: bool = False
 
     def validate(self) -> None:
         super().validate()
@@ -140,7 +143,8 @@ class AutoStrategy(MCMCStrategy):
                     relocated=jnp.zeros((), jnp.int32), added=jnp.zeros((), jnp.int32),
                     checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0), last_psnr=jnp.float32(-jnp.inf),
                     frozen_at=jnp.int32(0), compacted_from=jnp.int32(0), compacted_to=jnp.int32(0),
-                    compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0))
+                    compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0),
+                    compact_due=jnp.int32(0), freeze_compacted_from=jnp.int32(0), freeze_compacted_to=jnp.int32(0))
 
     def ceiling(self, ctx, sstate) -> int:
         s = self.settings
@@ -149,6 +153,11 @@ class AutoStrategy(MCMCStrategy):
     def refine(self, ctx, state, sstate, it):
         c, s = self.config, self.settings
         info = {}
+        if int(sstate["compact_due"]) and ctx.validate is not None:
+            state, rec = self.compact(ctx, state, f"step {it}, the count frozen")
+            sstate = dict(sstate, compact_due=jnp.int32(0), freeze_compacted_from=jnp.int32(rec["before"]),
+                          freeze_compacted_to=jnp.int32(rec["after"]))
+            info["compacted"] = rec["before"] - rec["after"]
         if it > c.densify_from and it % c.densify_every == 0:
             n = state.num_active()
             growing = bool(sstate["growing"])
@@ -184,7 +193,8 @@ class AutoStrategy(MCMCStrategy):
             why = (f"the ceiling of {self.ceiling(ctx, sstate)}" if at_ceiling else
                    f"{gain:.2f} dB of validation PSNR per doubling (under {self.settings.min_gain_db})")
             log.info("step %d: the count stops growing at %d surfels: %s", it, now[0], why)
-            sstate = dict(sstate, growing=jnp.int32(0), frozen_at=jnp.int32(it))
+            sstate = dict(sstate, growing=jnp.int32(0), frozen_at=jnp.int32(it),
+                          compact_due=jnp.int32(int(self.settings.compact_at_freeze)))
             return sstate, {"growth_stopped": now[0]}
         return sstate, {}
 
@@ -193,15 +203,20 @@ class AutoStrategy(MCMCStrategy):
         s = self.settings
         if not s.compact or ctx.validate is None:
             return state, sstate, info
-        weight = accumulated_weights(ctx, state)
-        state, rec = compact_model(state, weight, ctx.validate, s.compact_max_loss_db)
-        log.info("compaction: %d -> %d surfels (the least blending weight over the training views); validation "
-                 "PSNR %.2f -> %.2f dB (%d checks)", rec["before"], rec["after"], rec["val_psnr_before"],
-                 rec["val_psnr_after"], rec["validations"])
+        state, rec = self.compact(ctx, state, "the end")
         sstate = dict(sstate, compacted_from=jnp.int32(rec["before"]), compacted_to=jnp.int32(rec["after"]),
                       compact_val_before=jnp.float32(rec["val_psnr_before"]),
                       compact_val_after=jnp.float32(rec["val_psnr_after"]))
         return state, sstate, info | {"compacted": rec["before"] - rec["after"]}
+
+    def compact(self, ctx, state, when: str):
+        """compact_model on the training views' blending weights, logged."""
+        state, rec = compact_model(state, accumulated_weights(ctx, state), ctx.validate,
+                                   self.settings.compact_max_loss_db)
+        log.info("compaction at %s: %d -> %d surfels (the least blending weight over the training views); "
+                 "validation PSNR %.2f -> %.2f dB (%d checks)", when, rec["before"], rec["after"],
+                 rec["val_psnr_before"], rec["val_psnr_after"], rec["validations"])
+        return state, rec
 
     def meta(self, sstate: dict) -> dict:
         return super().meta(sstate) | {"growing": bool(sstate["growing"]), "frozen_at": int(sstate["frozen_at"])}
@@ -209,7 +224,11 @@ class AutoStrategy(MCMCStrategy):
     def report(self, sstate: dict) -> dict:
         if not int(sstate.get("compacted_from", 0)):
             return {}
-        return {"compaction": {"before": int(sstate["compacted_from"]), "after": int(sstate["compacted_to"]),
-                               "val_psnr_before": round(float(sstate["compact_val_before"]), 4),
-                               "val_psnr_after": round(float(sstate["compact_val_after"]), 4),
-                               "max_loss_db": self.settings.compact_max_loss_db}}
+        record = {"before": int(sstate["compacted_from"]), "after": int(sstate["compacted_to"]),
+                  "val_psnr_before": round(float(sstate["compact_val_before"]), 4),
+                  "val_psnr_after": round(float(sstate["compact_val_after"]), 4),
+                  "max_loss_db": self.settings.compact_max_loss_db}
+        if int(sstate.get("freeze_compacted_from", 0)):
+            record["at_freeze"] = {"step": int(sstate["frozen_at"]), "before": int(sstate["freeze_compacted_from"]),
+                                   "after": int(sstate["freeze_compacted_to"])}
+        return {"compaction": record}
