@@ -5,7 +5,8 @@
 - `budget` (default.py): the same with new surfels per round capped by a schedule up to `max_surfels`.
 - `mcmc` (mcmc.py): 3DGS-MCMC on 2D surfels, a fixed cap.
 - `auto` (auto.py): MCMC refinement whose count grows where the error is until the held-out
-  views stop paying for it; the `auto` recipe's strategy.
+  views stop paying for it, and a finished model compacted to what they need
+  (train/compaction.py); the `auto` recipe's strategy.
 
 Any strategy can prune by contribution (base.py: `contribution_prune`).
 """
