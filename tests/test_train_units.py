@@ -348,6 +348,16 @@ def test_checkpoint_roundtrip_and_refuses_nan(tmp_path):
         checkpoint.read_meta(tmp_path / "e.npz")
 
 
+def test_strategy_state_of_an_older_checkpoint_loads_with_the_new_entries_at_their_start(tmp_path):
+    old = {"growing": jnp.int32(0), "frozen_at": jnp.int32(3750)}
+    path = checkpoint.save_checkpoint(tmp_path / "c.npz", _state(), {"step": 3}, aux=old)
+    template = {"compact_due": jnp.int32(0), "frozen_at": jnp.int32(0), "growing": jnp.int32(1)}
+    back = checkpoint.load_aux(path, template)
+    assert int(back["frozen_at"]) == 3750 and int(back["growing"]) == 0 and int(back["compact_due"]) == 0
+    with pytest.raises(checkpoint.CheckpointError, match="another strategy"):  # entries this strategy lacks
+        checkpoint.load_aux(path, {"frozen_at": jnp.int32(0)})
+
+
 def test_opacity_reset_recovery_window():
     from ghsplat_jax.train.trainer import last_reset_before
 

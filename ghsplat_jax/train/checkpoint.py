@@ -73,16 +73,18 @@ def load_checkpoint(path: str | os.PathLike, template) -> tuple[object, dict]:
 
 def load_aux(path: str | os.PathLike, template):
     """The `aux` pytree saved with a checkpoint, with the structure of `template`; None when the
-    file has none (a checkpoint written before strategies kept state)."""
+    file has none (a checkpoint written before strategies kept state). Entries the template has
+    and the file lacks (state a newer version of the strategy keeps) take the template's values."""
     path = Path(path)
     meta = read_meta(path)
     if "aux_keys" not in meta:
         return None
     paths, treedef = jax.tree_util.tree_flatten_with_path(template)
     keys = [_key(p) for p, _ in paths]
-    if keys != meta["aux_keys"]:
-        raise CheckpointError(f"{path}: the saved strategy state {meta['aux_keys']} does not match this "
+    saved = list(meta["aux_keys"])
+    if not set(saved) <= set(keys):
+        raise CheckpointError(f"{path}: the saved strategy state {saved} does not match this "
                               f"strategy's {keys} (was the run started with another strategy?)")
     with np.load(path) as z:
-        leaves = [jax.numpy.asarray(z[f"aux_{i:04d}"]) for i in range(len(keys))]
-    return jax.tree_util.tree_unflatten(treedef, leaves)
+        stored = {k: jax.numpy.asarray(z[f"aux_{i:04d}"]) for i, k in enumerate(saved)}
+    return jax.tree_util.tree_unflatten(treedef, [stored.get(k, leaf) for k, (_, leaf) in zip(keys, paths)])
