@@ -90,17 +90,19 @@ def main(argv=None) -> int:
     ap.add_argument("--max-loss-db", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.2])
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
+    from ghsplat_jax.host_memory import release_compiled_programs
+    from ghsplat_jax.io_utils import write_json
+
     previous = json.loads(args.out.read_text())["runs"] if args.out.is_file() else []
     rows = {r["run"]: r for r in previous}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     for run in args.runs:
+        release_compiled_programs()  # many models in one process (see host_memory)
         row = compact_run(run.resolve().relative_to(ROOT) if run.resolve().is_relative_to(ROOT) else run,
                           args.max_loss_db)
         rows[row["run"]] = row
-    from ghsplat_jax.io_utils import write_json
-
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.out, {"machine": machine_record(), "runs": sorted(rows.values(), key=lambda r: r["run"])})
-    print(f"wrote {args.out}")
+        write_json(args.out, {"machine": machine_record(), "runs": sorted(rows.values(), key=lambda r: r["run"])})
+        print(f"wrote {args.out}")
     return 0
 
 
