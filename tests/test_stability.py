@@ -130,6 +130,8 @@ def test_study_runs_cases_and_writes_one_table(tmp_path):
 
     report = json.loads((tmp_path / "results" / "stability.json").read_text())
     assert report["machine"]["cpu_count"] and len(report["rows"]) == 3
+    assert report["code_revision"] and {r["code_revision"] for r in report["rows"]} == {report["code_revision"]}
+    assert f"the code revision each case ran at: {report['code_revision']} (3 rows)" in md
     assert (tmp_path / "results" / "stability.csv").read_text().count("\n") == 4
 
     # a partial rerun (ghsplat run --only) replaces its case's rows and keeps the others'

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ghsplat_jax.host_memory import release_compiled_programs
-from ghsplat_jax.io_utils import atomic_write, json_safe, machine_info, save_figure, write_json
+from ghsplat_jax.io_utils import atomic_write, code_revision, json_safe, machine_info, save_figure, write_json
 
 log = logging.getLogger("ghsplat.stability")
 
@@ -743,6 +743,7 @@ def run_study(exp, only: set[str] | None = None) -> dict:
     # the baseline first: the other training cases are judged against it
     cases = sorted(cases, key=lambda c: not c.get("baseline"))
     rows, failed = [], []
+    revision = code_revision()  # each row keeps the revision it ran at (cached rows: theirs, or none)
     for case in cases:
         if case["family"] in ("train", "divergence") and ctx.row is None:
             log.info("rendering the training row into %s", output / "row")
@@ -765,11 +766,12 @@ def run_study(exp, only: set[str] | None = None) -> dict:
                 log.error("%s failed: %s", case["name"], msg)
                 failed.append((case["name"], msg))
                 got = [_row(case, "-", False, f"the study could not run this case: {msg}",
-                            "study error (not a tool check)", msg, "run")]
+                            "study error (not a tool check)", msg, "run") | {"code_revision": revision}]
                 rows.extend(got)
                 continue
             for r in got:
                 r.setdefault("seconds", time.perf_counter() - start)
+                r["code_revision"] = revision
             write_json(cache, {"key": key, "rows": json_safe(got)})
         if case.get("baseline") and got and got[0].get("test_psnrs"):  # a cached baseline: the seeds' values
             ctx.baseline = dict(zip(got[0]["seeds"], got[0]["test_psnrs"]))
@@ -782,6 +784,15 @@ def run_study(exp, only: set[str] | None = None) -> dict:
     rows.sort(key=lambda r: order.get(r["case"], len(order)))  # the file's order (stable within a case)
     reports = write_reports(rows, exp, spec)
     return {"rows": rows, "failed": failed, "reports": reports}
+
+
+def _revisions(rows: list[dict]) -> list[tuple[str, int]]:
+    """(code revision, rows run at it) in first-seen order; rows run before rows kept it: "not recorded"."""
+    counts: dict[str, int] = {}
+    for r in rows:
+        rev = r.get("code_revision") or "not recorded"
+        counts[rev] = counts.get(rev, 0) + 1
+    return list(counts.items())
 
 
 def _reported_rows(exp) -> list[dict]:
@@ -824,6 +835,7 @@ def write_reports(rows: list[dict], exp, spec: dict) -> list[Path]:
                           "the documented 3-sigma truncation (max opacity x e^-4.5 where that reaches 1/255) "
                           "(rgb and alpha; the dense reference gets the scene without the invalid surfels)"}
     report = {"experiment": exp.name, "preset": exp.preset, "source": str(exp.source), "machine": machine_info(),
+              "code_revision": code_revision(),
               "criteria": criteria, "prepare": dict(_PREPARE, **spec.get("prepare", {})), "train": train,
               "summary": s, "rows": json_safe(rows)}
     paths = [write_json(results / "stability.json", report)]
@@ -841,7 +853,9 @@ def write_reports(rows: list[dict], exp, spec: dict) -> list[Path]:
           f"{report['machine']['jax']} ({report['machine']['jax_backend']}). Training row: "
           f"{report['prepare']['plants']} plants, {report['prepare']['views']} hand-held views at "
           f"{report['prepare']['width']}x{report['prepare']['height']}, every {report['prepare']['test_every']}th "
-          "a test view" + (f"; {train.get('steps')} steps" if train.get("steps") else "") + ".", "",
+          "a test view" + (f"; {train.get('steps')} steps" if train.get("steps") else "") + ". Report at code "
+          f"revision `{report['code_revision']}`; the code revision each case ran at: "
+          + ", ".join(f"{rev} ({n} rows)" for rev, n in _revisions(rows)) + ".", "",
           "Criteria: " + "; ".join(f"**{k}**: {v}" for k, v in criteria.items()) + ".", "",
           table(rows),
           "## Reading", "",
