@@ -5,7 +5,7 @@ number edited by hand (or a results file changed without regenerating) fails her
 Generators checked (each renders from committed files only, no run folders):
 - benchmarks/analysis/table1_readme.py -> benchmarks/results/table1_greenhouse/README.md
 - benchmarks/analysis/auto_recipe.py   -> benchmarks/results/auto_recipe/README.md and
-  benchmarks/results/auto_real/README.md (each from its results.json)
+  benchmarks/results/auto_recipe/real/README.md (each from its results.json)
 - benchmarks/robustness/sfm_crosscheck.py -> benchmarks/results/sfm_crosscheck/README.md (from its results.json)
 
 The first two import no JAX; sfm_crosscheck's module does (its table helper): a few seconds.
@@ -58,11 +58,11 @@ def test_auto_recipe_readme_is_generated(auto_recipe):
 
 
 def test_auto_real_readme_is_generated(auto_recipe):
-    out = RESULTS / "auto_real"
+    out = RESULTS / "auto_recipe" / "real"
     if not (out / "results.json").is_file():
-        pytest.skip("no auto_real results committed")
+        pytest.skip("no auto_recipe/real results committed")
     diff = auto_recipe.check(out)
-    assert not diff, "auto_real/README.md differs from its results.json:\n" + diff
+    assert not diff, "auto_recipe/real/README.md differs from its results.json:\n" + diff
 
 
 def test_sfm_crosscheck_readme_is_generated():
