@@ -156,6 +156,19 @@ def auto_section(rows: list[dict]) -> list[str]:
 # ---------------------------------------------------------------- the README
 
 
+def crosscheck_note(path: Path = RESULTS / "sfm_crosscheck" / "results.json") -> str:
+    """What the SfM's leave-one-out cross-check makes of row3_x0's photos (its committed results),
+    or that the segments' models predate it."""
+    rows = json.loads(path.read_text())["rows"] if path.is_file() else []
+    after = next((r for r in rows if r["case"] == "row3_x0" and r["variant"] == "after"), None)
+    if after is None:
+        return "No check of the segments' SfM caught that."
+    dropped = ", ".join(d.split(" (")[0] for d in after["cross_check_dropped"] or []) or "nothing"
+    return (f"The segments' models predate the SfM's leave-one-out cross-check, which on these photos drops "
+            f"{dropped} and leaves {after['centre_error_max_pct']:.2f}% max centre error and "
+            f"{after['rotation_error_max_deg']:.2f} degrees (`../sfm_crosscheck/README.md`).")
+
+
 def render(data: dict) -> str:
     rows = data["results"]["rows"]
     notes = data["notes"]
@@ -445,8 +458,7 @@ def render(data: dict) -> str:
             + "; with plain mapping they came out partial.",
             "- row3_x0 is ok with a "
             f"{rng([r3['centre_error_max_pct_extent'], other['centre_error_max_pct_extent']], '.1f')}"
-            "% max centre error (two hosts): its first two photos are off by several degrees, and no check catches "
-            "that.",
+            "% max centre error (two hosts): its first two photos are off by several degrees. " + crosscheck_note(),
             f"- **Remaking a segment does not always give the same model on another machine.** The {cap['views']} "
             f"photos of row3_x0 come out byte-identical each time (sha256 of `cat images/*.png`: "
             f"{other['images_sha256']}), and one machine repeats its SfM exactly, yet two hosts gave "
