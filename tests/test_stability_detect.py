@@ -105,6 +105,7 @@ def test_study_file_runs_every_training_case_with_three_seeds():
         train = [c for c in cases if c["family"] == "train"]
         assert all(stability.case_seeds(c, ctx) == [0, 1, 2] for c in train)
         thin = {c["name"]: c for c in train if c.get("dataset")}
-        assert set(thin) == {"thin-plant", "thin-plant-no-triangulate"}
+        auto = {"thin-plant-auto"} if preset == "full" else set()
+        assert set(thin) == {"thin-plant", "thin-plant-no-triangulate"} | auto
         assert thin["thin-plant-no-triangulate"]["triangulate"] is False
         assert all(math.isclose(c["goal_plant_psnr"], 18.0) for c in thin.values())
