@@ -15,7 +15,6 @@ with the machine and code revision); the compacted models are not written.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import tempfile
@@ -28,23 +27,12 @@ from record import RESULTS, ROOT, machine_record  # noqa: E402
 DEFAULT_OUT = RESULTS / "auto_recipe" / "compaction.json"
 
 
-def test_psnr(state, views, raster) -> float:
-    """Mean test-view PSNR of a training state (as metrics.json's test PSNR: the render clipped)."""
-    import numpy as np
-
-    from ghsplat_jax.eval.metrics import image_metrics
-    from ghsplat_jax.raster.render import capacity_for_views, render
-
-    surfels = state.active_surfels()
-    rcfg = dataclasses.replace(raster, median=False, distortion=False, depth_normal=False,
-                               pair_capacity=capacity_for_views(surfels, [v.camera for v in views], raster))
-    return float(np.mean([image_metrics(render(surfels, v.camera, rcfg).rgb, v.image)["psnr"] for v in views]))
-
-
 def compact_run(run: Path, losses: list[float]) -> dict:
     """The run's model compacted at each allowed validation loss: counts, validation and test PSNR."""
     from ghsplat_jax.data.ply import load_ply
+    from ghsplat_jax.eval.evaluate import test_curve_metrics
     from ghsplat_jax.io_utils import code_revision
+    from ghsplat_jax.raster.render import capacity_for_views
     from ghsplat_jax.train.compaction import compact_model
     from ghsplat_jax.train.config import load_config
     from ghsplat_jax.train.run_dir import load_training_data
@@ -66,8 +54,12 @@ def compact_run(run: Path, losses: list[float]) -> dict:
     t = time.perf_counter()
     weight = accumulated_weights(ctx, state)
     weight_s = time.perf_counter() - t
-    raster = config.raster
-    row = {"run": str(run), "surfels": surfels.num, "test_psnr": test_psnr(state, dataset.test, raster),
+    measure, cameras = test_curve_metrics(dataset, config), [v.camera for v in dataset.test]
+
+    def test_psnr(s) -> float:  # as metrics.json's test PSNR (the render clipped), from an exact pair buffer
+        return measure(s.params, s.active, capacity_for_views(s.active_surfels(), cameras, config.raster))["psnr"]
+
+    row = {"run": str(run), "surfels": surfels.num, "test_psnr": test_psnr(state),
            "weights_seconds": round(weight_s, 2), "code_revision": code_revision(), "compacted": []}
     metrics = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
     if "compaction" in metrics:
@@ -76,7 +68,7 @@ def compact_run(run: Path, losses: list[float]) -> dict:
     for loss in losses:
         t = time.perf_counter()
         small, rec = compact_model(state, weight, ctx.validate, loss)
-        rec |= {"seconds": round(time.perf_counter() - t, 2), "test_psnr": test_psnr(small, dataset.test, raster)}
+        rec |= {"seconds": round(time.perf_counter() - t, 2), "test_psnr": test_psnr(small)}
         row["compacted"].append(rec)
         print(f"{run}: max loss {loss} dB: {rec['before']} -> {rec['after']} surfels, val "
               f"{rec['val_psnr_before']:.3f} -> {rec['val_psnr_after']:.3f}, test {row['test_psnr']:.3f} -> "
