@@ -22,6 +22,7 @@ import logging
 import numpy as np
 
 from ghsplat_jax.core.camera import project_points
+from ghsplat_jax.data.splits import subsample
 
 log = logging.getLogger("ghsplat.data")
 
@@ -48,10 +49,6 @@ class TrackAgreement:
         return self.median_deg > max(POSE_DISAGREEMENT_DEG, STORED_FACTOR * self.stored_deg)
 
 
-def _even(items: list, k: int) -> list:
-    return items if len(items) <= k else [items[i] for i in np.linspace(0, len(items) - 1, k).astype(int)]
-
-
 def track_agreement(dataset) -> TrackAgreement | None:
     """The training views' agreement with the dataset's SfM points; None where it cannot be
     told (not a COLMAP dataset, pycolmap missing, a distorted camera model, no tracks)."""
@@ -67,14 +64,14 @@ def track_agreement(dataset) -> TrackAgreement | None:
         return None
     by_name = {im.name: im for im in recon.images.values()}
     rows = []
-    for view in _even(list(dataset.train), MAX_VIEWS):
+    for view in subsample(list(dataset.train), MAX_VIEWS):
         image = by_name.get(view.name)
         if image is None:
             continue
         camera = recon.cameras[image.camera_id]
         if camera.model.name not in PINHOLE_MODELS:
             return None
-        observed = _even([p for p in image.points2D if p.has_point3D()], MAX_POINTS)
+        observed = subsample([p for p in image.points2D if p.has_point3D()], MAX_POINTS)
         if not observed:
             continue
         scale = view.camera.width / camera.width
