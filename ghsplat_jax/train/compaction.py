@@ -74,9 +74,7 @@ def compact_model(state: TrainState, weight: jax.Array, validate: Callable[[Trai
         psnr_at[k] = validate(free_slots(state, lowest_mask(state.active, weight, jnp.int32(k))))
         return before - psnr_at[k]
 
-    k = largest_safe_count(loss_of, count, max_loss_db)
-    if k not in psnr_at:
-        loss_of(k)
+    k = largest_safe_count(loss_of, count, max_loss_db)  # a count it judged: psnr_at holds it
     if k:
         state = fit_pool(free_slots(state, lowest_mask(state.active, weight, jnp.int32(k))))
     return state, {"before": count, "after": count - k, "val_psnr_before": float(before),
