@@ -21,7 +21,7 @@ from ghsplat_jax.train.resolution import (
     spectrum_schedule,
 )
 from ghsplat_jax.train.stopping import PlateauRule
-from ghsplat_jax.train.strategies.auto import gain_per_doubling
+from ghsplat_jax.train.strategies.auto import level_gain
 
 
 def test_plateau_rule_anneals_once_then_stops_and_remembers_the_best():
@@ -100,14 +100,19 @@ def test_a_window_renders_as_the_same_pixels_of_the_whole_view():
         np.testing.assert_array_equal(crops[t], whole[y0:y0 + h, x0:x0 + w])
 
 
-def test_gain_per_doubling_reads_psnr_per_doubling_of_the_count():
-    assert gain_per_doubling((1000, 20.0), (2000, 20.5)) == pytest.approx(0.5)
-    assert gain_per_doubling((1000, 20.0), (4000, 21.0)) == pytest.approx(0.5)
-    assert gain_per_doubling((1000, 20.0), (1300, 25.0)) is None  # under half a doubling: not judged
+def test_level_gain_nets_out_the_time_trend_per_doubling():
+    assert level_gain((1000, 1000, 20.0), (2000, 2000, 20.5), trend=0.0) == pytest.approx(0.5)
+    assert level_gain((1000, 1000, 20.0), (2000, 4000, 21.0), trend=0.0) == pytest.approx(0.5)
+    # 1 dB a doubling, of which 1000 steps at 0.6 dB per 1000 steps explain 0.6.
+    assert level_gain((1000, 1000, 20.0), (2000, 2000, 21.0), trend=6e-4) == pytest.approx(0.4)
+    assert level_gain((1000, 1000, 20.0), (2000, 2000, 21.0), trend=-1e-3) == pytest.approx(1.0)  # never credited
+    assert level_gain((1000, 2000, 20.0), (2000, 2000, 21.0), trend=0.0) == -math.inf  # no growth: nothing bought
 
 
-def _growth_decisions(checks, width=100, height=100):
-    """Feed (count, val_psnr, train_scale) checks to the auto strategy's hook; the counts it froze at."""
+def _growth_decisions(checks, width=400, height=400):
+    """Feed (count, val_psnr, train_scale) checks, 250 steps apart, to the auto strategy's hook; a
+    level's growth ends (the hold begins) where a check's count reaches the level's target, as
+    `refine` ends it. Returns the counts it froze at and the last state."""
     from types import SimpleNamespace
 
     from ghsplat_jax.train.strategies import make_strategy
@@ -115,26 +120,34 @@ def _growth_decisions(checks, width=100, height=100):
     strategy = make_strategy(TrainConfig().replace(recipe="auto"))
     sstate, ctx, frozen = strategy.init_state(100), SimpleNamespace(width=width, height=height), []
     for step, (count, psnr, scale) in enumerate(checks, start=1):
+        target = int(sstate["level_target"])
+        if target and count >= target and not int(sstate["holding"]) and int(sstate["growing"]):
+            sstate = dict(sstate, holding=1, hold_seen=0)
         state = SimpleNamespace(num_active=lambda count=count: count)
         sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, {"psnr": psnr, "train_scale": scale})
         frozen += [info["growth_stopped"]] if "growth_stopped" in info else []
     return frozen, sstate
 
 
-def test_growth_rule_ignores_reduced_resolution_and_one_dipping_check():
-    # Checks at reduced resolution never decide. The check at 14,500 dips (25.2 after 26.0): alone
-    # it would read 0.37 dB per doubling and freeze; the better of the last two reads 1.9.
-    frozen, sstate = _growth_decisions([(2000, 18.0, 4), (4000, 30.0, 2), (10000, 25.0, 1), (12500, 26.0, 1),
-                                        (14500, 25.2, 1)])
-    assert frozen == [] and bool(sstate["growing"])
-    assert int(sstate["checked_count"]) == 14500 and float(sstate["checked_psnr"]) == pytest.approx(26.0)
-    # Then a doubling that buys 0.2 dB freezes the count.
-    frozen, sstate = _growth_decisions([(10000, 25.0, 1), (20000, 26.0, 1), (40000, 26.2, 1)], width=400)
-    assert frozen == [40000] and not bool(sstate["growing"]) and int(sstate["frozen_at"]) == 750
-    # The ceiling freezes it too (0: ceiling_per_pixel x one image's pixels, 2 x 100 x 100 here).
-    frozen, _ = _growth_decisions([(10000, 20.0, 1), (20000, 23.0, 1)])
-    assert frozen == [20000]
-    frozen, _ = _growth_decisions([(16000, 20.0, 1), (20000, 23.0, 1)])  # even short of half a doubling
+# Reduced resolution (ignored), then the first level's hold at 10,000 surfels (three checks), a
+# check while the next level grows (ignored), and the second level's hold at 20,000.
+FIRST_LEVEL = [(2000, 18.0, 4), (10000, 25.0, 1), (10000, 25.5, 1), (10000, 26.0, 1), (15000, 26.1, 1)]
+
+
+def test_growth_rule_judges_levels_net_of_the_time_trend():
+    frozen, sstate = _growth_decisions(FIRST_LEVEL)
+    assert frozen == [] and int(sstate["level_target"]) == 20000 and not int(sstate["holding"])
+    assert (int(sstate["checked_step"]), int(sstate["checked_count"])) == (1000, 10000)
+    # The doubling bought 1.6 dB in 1,000 steps, but at 20,000 the model still gains 1.2 dB per
+    # 1,000 steps without growing: net 0.4 dB per doubling, under 0.5: the count freezes.
+    frozen, sstate = _growth_decisions(FIRST_LEVEL + [(20000, 27.0, 1), (20000, 27.3, 1), (20000, 27.6, 1)])
+    assert frozen == [20000] and not int(sstate["growing"]) and int(sstate["frozen_at"]) == 2000
+    # The same gain with a flat hold (0.2 dB per 1,000 steps) is the count's: the next level grows.
+    frozen, sstate = _growth_decisions(FIRST_LEVEL + [(20000, 27.5, 1), (20000, 27.55, 1), (20000, 27.6, 1)])
+    assert frozen == [] and int(sstate["level_target"]) == 40000
+    # The ceiling (ceiling_per_pixel x one image's pixels: 2 x 100 x 100) freezes it at its hold's end.
+    frozen, _ = _growth_decisions(FIRST_LEVEL + [(20000, 27.5, 1), (20000, 27.55, 1), (20000, 29.6, 1)],
+                                  width=100, height=100)
     assert frozen == [20000]
 
 
@@ -158,7 +171,9 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_f
                                 stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
                                 normal_from=0, lr_sh_dc=0.02, sh_degree=1, sh_increase_every=10, progress=False,
                                 checkpoint_every=1000, pair_capacity=16384)
-    cfg = cfg.replace(**{"strategy.compact_at_freeze": at_freeze})
+    # min_gain_db 5: the first level judged freezes the count (a level in two checks, 20 steps).
+    cfg = cfg.replace(**{"strategy.compact_at_freeze": at_freeze, "strategy.min_gain_db": 5.0,
+                         "strategy.hold_checks": 2})
     assert cfg.replace(recipe="auto").val_every == 10  # the same recipe again changes nothing
     metrics = train_and_evaluate(cfg, tmp_path / "run", dataset=ds)
     stop = metrics["stop"]

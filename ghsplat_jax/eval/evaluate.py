@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.data.splits import subsample
 from ghsplat_jax.eval.geometry import geometry_errors, ground_truth, truth_source
 from ghsplat_jax.eval.metrics import (
     TRAIN_TEST_GAP_DB,
@@ -27,13 +28,6 @@ from ghsplat_jax.io_utils import code_revision, device_name, machine_info
 from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
-
-
-def _even_subset(views, k: int):
-    if not k or len(views) <= k:
-        return list(views)
-    idx = np.unique(np.linspace(0, len(views) - 1, k).round().astype(int))
-    return [views[i] for i in idx]
 
 
 def depth_colormap(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -90,7 +84,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
     save_renders = config.save_test_renders if save_renders is None else save_renders
     progress = config.progress if progress is None else progress
     surfels = jax.tree_util.tree_map(jax.numpy.asarray, surfels)
-    splits = {"train": _even_subset(dataset.train, config.eval_max_train_views), "test": list(dataset.test)}
+    splits = {"train": subsample(list(dataset.train), config.eval_max_train_views or None), "test": list(dataset.test)}
     # Eager renders from exact pair counts (nothing dropped), all at one capacity: one compile.
     capacity = capacity_for_views(surfels, [v.camera for views in splits.values() for v in views], config.raster)
     rcfg = dataclasses.replace(config.raster, pair_capacity=capacity)

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.data.splits import subsample
 from ghsplat_jax.host_memory import release_compiled_programs
 from ghsplat_jax.io_utils import atomic_write, code_revision, json_safe, machine_info, save_figure, write_json
 
@@ -199,12 +200,6 @@ def prepare_row(prepare: dict, folder: Path) -> Path:
     return folder
 
 
-def _even(items: list, k: int) -> list:
-    if not k or k >= len(items):
-        return list(items)
-    return [items[i] for i in np.round(np.linspace(0, len(items) - 1, k)).astype(int)]
-
-
 def _median_test(out_dir: Path) -> dict:
     from ghsplat_jax.train.run_dir import PER_VIEW_NAME
 
@@ -246,7 +241,7 @@ def _load(case: dict, cfg):
     from ghsplat_jax.train.run_dir import load_training_data
 
     ds = load_training_data(cfg)  # pose_noise is applied here (TrainConfig.pose_noise)
-    train = _even(ds.train, int(case.get("views", 0)))
+    train = subsample(list(ds.train), int(case.get("views", 0)) or None)
     changes = {"train": train}
     if case.get("init") == "random":
         changes.update(points=np.zeros((0, 3), np.float32), point_colors=None)

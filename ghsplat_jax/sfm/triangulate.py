@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.data.splits import subsample
 from ghsplat_jax.sfm.diagnose import verified_pair_count
 
 log = logging.getLogger("ghsplat.sfm")
@@ -50,13 +51,6 @@ def _pycolmap():
         raise TriangulationError(f"pycolmap {getattr(pycolmap, '__version__', '?')} lacks {', '.join(missing)}: "
                                  "triangulating points needs pycolmap >= 3.10")
     return pycolmap
-
-
-def _even(views, k: int):
-    if len(views) <= k:
-        return list(views)
-    idx = np.unique(np.linspace(0, len(views) - 1, k).round().astype(int))
-    return [views[i] for i in idx]
 
 
 def _write_images(views, folder: Path) -> list[str]:
@@ -157,7 +151,7 @@ def triangulate_known_cameras(views, work_dir, options: TriangulateOptions | Non
     error. Raises TriangulationError with the folder and the problem."""
     pycolmap = _pycolmap()
     options = options or TriangulateOptions()
-    views = _even(list(views), options.max_views)
+    views = subsample(list(views), options.max_views)
     if len(views) < 2:
         raise TriangulationError(f"{work_dir}: {len(views)} view(s); triangulation needs two or more")
     work = Path(work_dir)

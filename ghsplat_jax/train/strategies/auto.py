@@ -8,21 +8,25 @@ gradient says where the image error pulls on the model (FastGS and Taming 3DGS g
 error is; as a sampling weight, not a threshold, it does not depend on the image size as the
 2DGS gradient threshold does).
 
-Growth stops by a rate-distortion rule. The validation checks (the trainer renders views held
-out of training) are read at full resolution only. Once the count has grown by half a doubling
-(x1.41) since the reference check, the gain in validation PSNR since that check is divided by
-the growth in doublings; when a doubling buys less than `min_gain_db`, the count is frozen for
-the rest of the run (relocation and noise go on), else the check becomes the new reference.
-Two things keep one noisy check from deciding: the span of half a doubling (between consecutive
-checks the count grows 20-30%, and a 0.2 dB dip then reads as a dB per doubling), and the better
-of the last two checks standing for "now" (a check right after a growth round dips while the
-new surfels settle). `max_surfels` is a safety ceiling only (0: one surfel per pixel of a
-training image x `ceiling_per_pixel`).
+Growth stops by a rate-distortion rule read on the validation checks (views held out of
+training) at full resolution; at reduced resolution the count grows every round unjudged. A
+model's validation PSNR rises for two reasons, more surfels and more steps, and early in a run
+the steps dominate: a rule that credited the count with all of it grew fern to 258k surfels (and
+on) and row2_x1 to its ceiling. So the count grows in levels and holds between them: each level
+adds `level_doublings` doublings, then the count holds for `hold_checks` checks. The hold
+measures the time trend, the PSNR gained per step at a fixed count (its first to its last
+check); at its end the level is judged by the PSNR gained since the previous level's end less
+that trend over the steps between them, per doubling of the count. Under `min_gain_db` the count
+freezes for the rest of the run (relocation and noise go on); else the next level grows. The
+hold's trend is read right after a growth, while the new surfels still settle, so it over-states
+the time's share and errs towards fewer surfels, which compaction cannot add back but the
+ceiling rule cannot take away either. `max_surfels` is a safety ceiling only (0: one surfel per
+pixel of a training image x `ceiling_per_pixel`).
 
 At the end (after the stop rule has restored its best check's model), compaction removes the
 surfels that carry least blending weight over the training views, as many as cost at most
-`compact_max_loss_db` of validation PSNR (train/compaction.py): growth judged on a converging
-model overshoots, and a quarter or more of a finished model adds next to nothing to any view.
+`compact_max_loss_db` of validation PSNR (train/compaction.py): a quarter or more of a finished
+model adds next to nothing to any view.
 """
 
 from __future__ import annotations
@@ -52,8 +56,11 @@ class AutoSettings(MCMCSettings):
 
     Args:
         min_gain_db: stop growing when a doubling of the count gains less validation PSNR than
-            this (dB), measured between consecutive validation checks.
+            this (dB), net of the time trend (see the module docstring).
         grow_rate: while growing, each refinement round adds this fraction of the live count.
+        level_doublings: at full resolution the count grows by this many doublings, then holds.
+        hold_checks: validation checks the count holds for before its level is judged (>= 2: the
+            first and the last give the time trend).
         growth_weight: "error" draws new surfels by opacity x mean projected-centre gradient,
             "opacity" by opacity alone (3DGS-MCMC).
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
@@ -69,6 +76,8 @@ class AutoSettings(MCMCSettings):
 
     grow_rate: float = 0.1
     min_gain_db: float = 0.5
+    level_doublings: float = 1.0
+    hold_checks: int = 3
     growth_weight: str = "error"
     ceiling_per_pixel: float = 2.0
     compact: bool = True
@@ -81,6 +90,10 @@ class AutoSettings(MCMCSettings):
             raise ValueError(f"min_gain_db must be >= 0, got {self.min_gain_db}")
         if not self.grow_rate > 0:
             raise ValueError(f"grow_rate must be positive, got {self.grow_rate}")
+        if not self.level_doublings > 0:
+            raise ValueError(f"level_doublings must be positive, got {self.level_doublings}")
+        if self.hold_checks < 2:
+            raise ValueError(f"hold_checks must be >= 2 (the time trend needs two checks), got {self.hold_checks}")
         if self.growth_weight not in GROWTH_WEIGHTS:
             raise ValueError(f"growth_weight must be one of {GROWTH_WEIGHTS}, got {self.growth_weight!r}")
         if not self.ceiling_per_pixel > 0:
@@ -113,17 +126,13 @@ def auto_round(state: TrainState, key: jax.Array, cap: jax.Array, min_opacity: f
 auto_round_jit = jax.jit(auto_round, static_argnames=("min_opacity", "grow_rate", "kind"))
 
 
-MIN_SPAN_DOUBLINGS = 0.5  # the growth between two checks the rule compares (see the module docstring)
-
-
-def gain_per_doubling(prev: tuple[int, float], now: tuple[int, float],
-                      min_span: float = MIN_SPAN_DOUBLINGS) -> float | None:
-    """Validation PSNR gained per doubling of the count between two (count, psnr) checks; None
-    when the count grew by less than `min_span` doublings, too little to judge its worth."""
-    doublings = math.log2(max(now[0], 1) / max(prev[0], 1))
-    if doublings < min_span:
-        return None
-    return (now[1] - prev[1]) / doublings
+def level_gain(prev: tuple[int, int, float], now: tuple[int, int, float], trend: float) -> float:
+    """Validation PSNR per doubling of the count between two level ends (step, count, psnr), less
+    `trend` (dB per step at a fixed count, counted only when positive) over the steps between."""
+    doublings = math.log2(max(now[1], 1) / max(prev[1], 1))
+    if doublings <= 0:
+        return -math.inf  # the count did not grow (a ceiling): nothing bought
+    return (now[2] - prev[2] - max(trend, 0.0) * (now[0] - prev[0])) / doublings
 
 
 @register("auto", AutoSettings)
@@ -141,7 +150,9 @@ class AutoStrategy(MCMCStrategy):
         base = super(MCMCStrategy, self).init_state(initial_count)
         return dict(base, max_surfels=jnp.int32(self.settings.max_surfels), growing=jnp.int32(1),
                     relocated=jnp.zeros((), jnp.int32), added=jnp.zeros((), jnp.int32),
-                    checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0), last_psnr=jnp.float32(-jnp.inf),
+                    level_target=jnp.int32(0), holding=jnp.int32(0), hold_seen=jnp.int32(0),
+                    hold_first_step=jnp.int32(0), hold_first_psnr=jnp.float32(0.0),
+                    checked_step=jnp.int32(0), checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0),
                     frozen_at=jnp.int32(0), compacted_from=jnp.int32(0), compacted_to=jnp.int32(0),
                     compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0),
                     compact_due=jnp.int32(0), freeze_compacted_from=jnp.int32(0), freeze_compacted_to=jnp.int32(0))
@@ -160,8 +171,9 @@ class AutoStrategy(MCMCStrategy):
             info["compacted"] = rec["before"] - rec["after"]
         if it > c.densify_from and it % c.densify_every == 0:
             n = state.num_active()
-            growing = bool(sstate["growing"])
-            cap = min(math.floor(n * (1 + s.grow_rate)), self.ceiling(ctx, sstate)) if growing else n
+            growing = bool(sstate["growing"]) and not bool(sstate["holding"])
+            target = int(sstate["level_target"]) or math.inf  # 0: before full resolution, no level
+            cap = min(math.floor(n * (1 + s.grow_rate)), target, self.ceiling(ctx, sstate)) if growing else n
             if cap > state.capacity:
                 # Doubling: each new pool compiles the step (and the validation renders) again, and a
                 # count that grows 10% a round would cross a 1.25x bucket every other round.
@@ -175,28 +187,48 @@ class AutoStrategy(MCMCStrategy):
             state, counts = auto_round_jit(state, key, jnp.int32(cap), min_opacity=float(s.min_opacity),
                                            grow_rate=float(s.grow_rate) if growing else 0.0, kind=s.growth_weight)
             sstate = self.count_round(sstate, counts, info)
+            if growing and state.num_active() >= min(target, self.ceiling(ctx, sstate)):
+                sstate = dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))
         return self.add_noise(ctx, state, it), sstate, info
 
     def on_validation(self, ctx, state, sstate, it, val):
         if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1:
             return sstate, {}  # at reduced resolution the held-out views cannot judge the count
-        psnr = float(val["psnr"])
-        now = (state.num_active(), max(psnr, float(sstate["last_psnr"])))
-        sstate = dict(sstate, last_psnr=jnp.float32(psnr))
-        ref = (int(sstate["checked_count"]), float(sstate["checked_psnr"]))
-        gain = gain_per_doubling(ref, now) if ref[0] else None
-        at_ceiling = now[0] >= self.ceiling(ctx, sstate)
-        if gain is None and ref[0] and not at_ceiling:
-            return sstate, {}  # the count has not grown enough since the reference check to judge it
-        sstate = dict(sstate, checked_count=jnp.int32(now[0]), checked_psnr=jnp.float32(now[1]))
-        if (gain is not None and gain < self.settings.min_gain_db) or at_ceiling:
+        if not int(sstate["level_target"]) and not bool(sstate["holding"]):
+            sstate = dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))  # full resolution: hold
+        if not bool(sstate["holding"]):
+            return sstate, {}  # a level still growing
+        psnr, seen = float(val["psnr"]), int(sstate["hold_seen"]) + 1
+        if seen == 1:
+            sstate = dict(sstate, hold_first_step=jnp.int32(it), hold_first_psnr=jnp.float32(psnr))
+        sstate = dict(sstate, hold_seen=jnp.int32(seen))
+        if seen < self.settings.hold_checks:
+            return sstate, {}
+        return self.judge_level(ctx, sstate, (it, state.num_active(), psnr))
+
+    def judge_level(self, ctx, sstate, now: tuple[int, int, float]):
+        """At a hold's end: grow the next level, or freeze the count (see the module docstring)."""
+        s, (it, count, psnr) = self.settings, now
+        first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
+        trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
+        prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
+        at_ceiling = count >= self.ceiling(ctx, sstate)
+        gain = level_gain(prev, now, trend) if prev[1] else None
+        sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
+                      checked_psnr=jnp.float32(psnr))
+        if at_ceiling or (gain is not None and gain < s.min_gain_db):
             why = (f"the ceiling of {self.ceiling(ctx, sstate)}" if at_ceiling else
-                   f"{gain:.2f} dB of validation PSNR per doubling (under {self.settings.min_gain_db})")
-            log.info("step %d: the count stops growing at %d surfels: %s", it, now[0], why)
-            sstate = dict(sstate, growing=jnp.int32(0), frozen_at=jnp.int32(it),
-                          compact_due=jnp.int32(int(self.settings.compact_at_freeze)))
-            return sstate, {"growth_stopped": now[0]}
-        return sstate, {}
+                   f"{gain:.2f} dB of validation PSNR per doubling net of {trend * 1000:.2f} dB per 1000 steps "
+                   f"at a fixed count (under {s.min_gain_db})")
+            log.info("step %d: the count stops growing at %d surfels: %s", it, count, why)
+            sstate = dict(sstate, growing=jnp.int32(0), holding=jnp.int32(0), frozen_at=jnp.int32(it),
+                          compact_due=jnp.int32(int(s.compact_at_freeze)))
+            return sstate, {"growth_stopped": count}
+        target = math.ceil(count * 2.0 ** s.level_doublings)
+        if gain is not None:
+            log.info("step %d: %.2f dB per doubling net of the time trend at %d surfels; growing to %d",
+                     it, gain, count, target)
+        return dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target)), {}
 
     def at_end(self, ctx, state, sstate):
         state, sstate, info = super().at_end(ctx, state, sstate)
