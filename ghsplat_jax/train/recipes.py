@@ -3,8 +3,8 @@ override (a recipe's table, then the config file, then the command line).
 
 - "" (none): the 2DGS defaults, the Table 1 protocol: 30k steps, adaptive density control.
 - "auto": a model that sizes itself and a run that stops itself. Growth by the `auto` strategy
-  (train/strategies/auto.py) until validation PSNR per doubling of the count falls under its
-  threshold; a validation split carved from the training views; a stop on a validation plateau
+  (train/strategies/auto.py) in levels, until a level's validation PSNR per doubling of the count,
+  net of the gain a fixed count still makes per step, falls under its threshold; a validation split carved from the training views; a stop on a validation plateau
   (after one annealing of the means learning rate), keeping the best check's model, compacted
   (the surfels validation can spare removed: train/compaction.py); images at
   reduced resolution early, raised by their spectrum (DashGaussian); the means' learning rate

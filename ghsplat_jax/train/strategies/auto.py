@@ -171,23 +171,23 @@ class AutoStrategy(MCMCStrategy):
             info["compacted"] = rec["before"] - rec["after"]
         if it > c.densify_from and it % c.densify_every == 0:
             n = state.num_active()
-            growing = bool(sstate["growing"]) and not bool(sstate["holding"])
+            adding = bool(sstate["growing"]) and not bool(sstate["holding"])  # a level growing
             target = int(sstate["level_target"]) or math.inf  # 0: before full resolution, no level
-            cap = min(math.floor(n * (1 + s.grow_rate)), target, self.ceiling(ctx, sstate)) if growing else n
+            cap = min(math.floor(n * (1 + s.grow_rate)), target, self.ceiling(ctx, sstate)) if adding else n
             if cap > state.capacity:
                 # Doubling: each new pool compiles the step (and the validation renders) again, and a
                 # count that grows 10% a round would cross a 1.25x bucket every other round.
                 new_cap = growth_bucket(max(2 * state.capacity, math.ceil(cap / (1.0 - c.capacity_headroom))))
                 log.info("surfel pool %d -> %d slots", state.capacity, new_cap)
                 state = grow(state, new_cap)
-            elif not growing and (fitted := fit_pool(state)) is not state:
+            elif not bool(sstate["growing"]) and (fitted := fit_pool(state)) is not state:  # frozen (a hold grows on)
                 log.info("the count is final: surfel pool %d -> %d slots", state.capacity, fitted.capacity)
                 state = fitted
             key = jax.random.fold_in(jax.random.PRNGKey(c.seed), it)
             state, counts = auto_round_jit(state, key, jnp.int32(cap), min_opacity=float(s.min_opacity),
-                                           grow_rate=float(s.grow_rate) if growing else 0.0, kind=s.growth_weight)
+                                           grow_rate=float(s.grow_rate) if adding else 0.0, kind=s.growth_weight)
             sstate = self.count_round(sstate, counts, info)
-            if growing and state.num_active() >= min(target, self.ceiling(ctx, sstate)):
+            if adding and state.num_active() >= min(target, self.ceiling(ctx, sstate)):
                 sstate = dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))
         return self.add_noise(ctx, state, it), sstate, info
 
