@@ -151,6 +151,32 @@ def test_growth_rule_judges_levels_net_of_the_time_trend():
     assert frozen == [20000]
 
 
+def test_a_level_grows_to_its_target_then_holds_in_its_pool_and_a_frozen_count_fits_its_pool():
+    from types import SimpleNamespace
+
+    from raster_scenes import random_scene
+
+    from ghsplat_jax.train import optim
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.strategies import make_strategy
+
+    cfg = TrainConfig().replace(recipe="auto", densify_from=0, densify_every=1, sh_degree=1,
+                                **{"strategy.grow_rate": 0.25, "strategy.noise_lr": 0.0})
+    strategy = make_strategy(cfg)
+    params, active = pad_params(random_scene(40, seed=0, degree=1), 8192)
+    state = new_state(params, active, optim.make_optimizers(cfg))
+    ctx = SimpleNamespace(width=100, height=100, extent=1.0, means_lr=lambda it: 1e-4, validate=None)
+    sstate = dict(strategy.init_state(40), level_target=60)
+    counts = []
+    for it in range(1, 6):
+        state, sstate, _ = strategy.refine(ctx, state, sstate, it)
+        counts.append(state.num_active())
+    assert counts == [50, 60, 60, 60, 60] and int(sstate["holding"]) == 1  # 40 x 1.25, then the target
+    assert state.capacity == 8192  # a hold keeps its pool: the next level grows into it
+    state, _, _ = strategy.refine(ctx, state, dict(sstate, growing=0, holding=0), 6)
+    assert state.num_active() == 60 and state.capacity < 8192  # frozen: the pool shrinks to fit
+
+
 def test_auto_recipe_is_a_table_under_the_other_settings():
     cfg = TrainConfig().replace(recipe="auto", val_every=50)
     assert cfg.val_every == 50 and cfg.strategy.name == "auto" and cfg.res_schedule == "spectrum"
