@@ -4,10 +4,11 @@ override (a recipe's table, then the config file, then the command line).
 - "" (none): the 2DGS defaults, the Table 1 protocol: 30k steps, adaptive density control.
 - "auto": a model that sizes itself and a run that stops itself. Growth by the `auto` strategy
   (train/strategies/auto.py) in levels, until a level's validation PSNR per doubling of the count,
-  net of the gain a fixed count still makes per step, falls under its threshold; a validation split carved from the training views; a stop on a validation plateau
-  (after one annealing of the means learning rate), keeping the best check's model, compacted
-  (the surfels validation can spare removed: train/compaction.py); images at
-  reduced resolution early, raised by their spectrum (DashGaussian); the means' learning rate
+  net of the gain a fixed count still makes per step, falls under its threshold; a validation
+  split carved from the training views; a stop on a validation plateau (after one annealing of
+  the means learning rate), keeping the best check's model, compacted (the surfels validation can
+  spare removed: train/compaction.py); images at reduced resolution early, raised by their
+  spectrum (DashGaussian); the means' learning rate
   decaying over 10k steps instead of 30k; `steps` only a ceiling. The normal-consistency loss keeps
   2DGS's start (step 7,000), which a run that stops itself often does not reach: from step 2,000
   it cost 1.38 dB of test PSNR on row2_x1 (28.01 against 29.39) for better normals (20 against 34
