@@ -7,6 +7,7 @@ so a reader (or a crash) sees the old output or the new one, never half of one.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -158,9 +159,12 @@ def reference_kernel_seconds(repeats: int = 7) -> float:
     return _REFERENCE_SECONDS[0]
 
 
+@functools.cache
 def code_revision() -> str:
     """The package's git revision ("<sha>", "<sha>+dirty" with uncommitted changes under it), or
-    "unknown" outside a git checkout: recorded beside results so a number names its code."""
+    "unknown" outside a git checkout: recorded beside results so a number names its code. Read
+    once per process: the code a process runs is the code it imported, and a checkout moved under
+    a long run (its training at one revision, its metrics written at the next) must not rename it."""
     import subprocess
 
     here = Path(__file__).resolve().parent

@@ -44,3 +44,17 @@ def test_machine_info_names_the_cpu_on_linux():
     info = machine_info()
     assert info["processor"].strip()
     assert isinstance(info["cpu_simd"], list) and all(isinstance(f, str) for f in info["cpu_simd"])
+
+
+def test_code_revision_is_read_once_so_a_checkout_moved_under_a_run_does_not_rename_its_code(monkeypatch):
+    import subprocess
+
+    from ghsplat_jax.io_utils import code_revision
+
+    first = code_revision()
+
+    def moved(*args, **kwargs):  # git would now name another commit
+        return subprocess.CompletedProcess(args, 0, stdout="f" * 40 + "\n", stderr="")
+
+    monkeypatch.setattr(subprocess, "run", moved)
+    assert code_revision() == first

@@ -258,6 +258,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
 
         for p in remove_scratch(out_dir):
             log.info("removed %s, left by an interrupted write", p)
+    revision = code_revision()  # the code this process trains with, read before training
     dataset = dataset if dataset is not None else load_training_data(config)
     test_eval = test_curve_metrics(dataset, config) if config.test_curve_every and dataset.test else None
     result = train(config, out_dir, dataset=dataset, resume=resume, until=until, test_eval=test_eval)
@@ -269,7 +270,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
         return summary
     # Where and with what code it trained (the training seconds depend on both), from this process.
     extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
-                                                                   "code_revision": code_revision()}
+                                                                   "code_revision": revision}
     extra |= make_strategy(config).report(result.strategy_state)  # e.g. the auto strategy's compaction
     if result.pose is not None:  # the training views are evaluated at the poses the run refined them to
         from ghsplat_jax.train.pose import refine_views
