@@ -21,7 +21,7 @@ from ghsplat_jax.train.resolution import (
     spectrum_schedule,
 )
 from ghsplat_jax.train.stopping import PlateauRule
-from ghsplat_jax.train.strategies.auto import level_gain
+from ghsplat_jax.train.strategies.auto import level_gain, start_hold
 
 
 def test_plateau_rule_anneals_once_then_stops_and_remembers_the_best():
@@ -122,7 +122,7 @@ def _growth_decisions(checks, width=400, height=400):
     for step, (count, psnr, scale) in enumerate(checks, start=1):
         target = int(sstate["level_target"])
         if target and count >= target and not int(sstate["holding"]) and int(sstate["growing"]):
-            sstate = dict(sstate, holding=1, hold_seen=0)
+            sstate = start_hold(sstate)
         state = SimpleNamespace(num_active=lambda count=count: count)
         sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, {"psnr": psnr, "train_scale": scale})
         frozen += [info["growth_stopped"]] if "growth_stopped" in info else []

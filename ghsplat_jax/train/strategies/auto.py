@@ -137,6 +137,11 @@ def level_gain(prev: tuple[int, int, float], now: tuple[int, int, float], trend:
     return (now[2] - prev[2] - max(trend, 0.0) * (now[0] - prev[0])) / doublings
 
 
+def start_hold(sstate: dict) -> dict:
+    """The strategy state with the count held and the hold's checks counted from zero."""
+    return dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))
+
+
 @register("auto", AutoSettings)
 @dataclasses.dataclass(frozen=True)
 class AutoStrategy(MCMCStrategy):
@@ -190,14 +195,14 @@ class AutoStrategy(MCMCStrategy):
                                            grow_rate=float(s.grow_rate) if adding else 0.0, kind=s.growth_weight)
             sstate = self.count_round(sstate, counts, info)
             if adding and state.num_active() >= min(target, self.ceiling(ctx, sstate)):
-                sstate = dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))
+                sstate = start_hold(sstate)
         return self.add_noise(ctx, state, it), sstate, info
 
     def on_validation(self, ctx, state, sstate, it, val):
         if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1:
             return sstate, {}  # at reduced resolution the held-out views cannot judge the count
         if not int(sstate["level_target"]) and not bool(sstate["holding"]):
-            sstate = dict(sstate, holding=jnp.int32(1), hold_seen=jnp.int32(0))  # full resolution: hold
+            sstate = start_hold(sstate)  # full resolution: hold
         if not bool(sstate["holding"]):
             return sstate, {}  # a level still growing
         psnr, seen = float(val["psnr"]), int(sstate["hold_seen"]) + 1
