@@ -71,6 +71,22 @@ def test_sfm_crosscheck_readme_is_generated():
     assert not diff, "sfm_crosscheck/README.md differs from its results.json:\n" + diff
 
 
+def test_sfm_repeat_summary_counts_an_ok_model_beyond_the_bounds():
+    """The goal check reads only the multithreaded repeats of the summary's revision, and an ok
+    model with one view 2.1 degrees off is beyond the bounds."""
+    mod = _module("benchmarks/robustness/sfm_crosscheck.py")
+    row = dict(variant="after", status="ok", centre_error_max_pct=0.5, rotation_error_max_deg=1.0,
+               cross_check_dropped=[], git_revision="new")
+    rows = [dict(row, case="row3_x0-mt#1"), dict(row, case="row3_x0-mt#2", rotation_error_max_deg=2.1),
+            dict(row, case="row1_x0-mt#1", status="folded"), dict(row, case="row1_x0-mt#2"),
+            dict(row, case="row2_x0-mt#1", rotation_error_max_deg=9.0, git_revision="old"),
+            dict(row, case="row2_x0", rotation_error_max_deg=9.0)]
+    text = mod.repeat_summary(rows, "new")
+    assert "**1 ok model(s) beyond the bounds**" in text and "1 of 2 segments ok in every repeat" in text
+    assert "row2_x0" not in text and "| row3_x0 | 2 | 2 | - | 0.5 | 2.1 | row3_x0-mt#2 | 0 |" in text
+    assert mod.repeat_summary(rows, "other") == ""
+
+
 def _edit_a_number(text: str, old: str, new: str) -> str:
     assert old in text, f"{old!r} not in the README any more; pick another number for this test"
     return text.replace(old, new, 1)

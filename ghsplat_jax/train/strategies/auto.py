@@ -224,9 +224,13 @@ class AutoStrategy(MCMCStrategy):
         sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
                       checked_psnr=jnp.float32(psnr))
         if at_ceiling or (gain is not None and gain < s.min_gain_db):
-            why = (f"the ceiling of {self.ceiling(ctx, sstate)}" if at_ceiling else
-                   f"{gain:.2f} dB of validation PSNR per doubling net of {trend * 1000:.2f} dB per 1000 steps "
-                   f"at a fixed count (under {s.min_gain_db})")
+            if at_ceiling:
+                why = f"the ceiling of {self.ceiling(ctx, sstate)}"
+            elif gain == -math.inf:
+                why = f"the count did not grow since the last level ({prev[1]} -> {count} surfels)"
+            else:
+                why = (f"{gain:.2f} dB of validation PSNR per doubling net of {trend * 1000:.2f} dB per 1000 "
+                       f"steps at a fixed count (under {s.min_gain_db})")
             log.info("step %d: the count stops growing at %d surfels: %s", it, count, why)
             sstate = dict(sstate, growing=jnp.int32(0), holding=jnp.int32(0), frozen_at=jnp.int32(it),
                           compact_due=jnp.int32(int(s.compact_at_freeze)))
