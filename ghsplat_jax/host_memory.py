@@ -38,6 +38,12 @@ def reuse_freed_memory() -> bool:
 
 
 MAP_SHARE = 0.5  # release_compiled_programs acts above this share of the kernel's mapping limit
+# ... and inside one training run, checked every MAPS_CHECK_EVERY steps (counting the maps takes
+# milliseconds): a self-sizing run compiles for every pool, pair buffer and resolution it passes,
+# and the third auto run of one `ghsplat run` process (each run starting under MAP_SHARE) hit the
+# limit mid-run.
+IN_RUN_MAP_SHARE = 0.8
+MAPS_CHECK_EVERY = 100
 
 
 def memory_maps() -> tuple[int, int] | None:

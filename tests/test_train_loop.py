@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ghsplat_jax import host_memory
 from ghsplat_jax.train import densify
 from ghsplat_jax.train import step as step_mod
 from ghsplat_jax.train.checkpoint import load_checkpoint, read_meta
@@ -120,6 +121,23 @@ def test_resume_reproduces_state(run, tmp_path):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
     lines = (out / STATS_NAME).read_text().splitlines()
     assert [json.loads(x)["step"] for x in lines] == list(range(1, 31))
+
+
+def test_compiled_programs_dropped_mid_run_change_nothing(run, tmp_path, monkeypatch, caplog):
+    """Near the kernel's limit on memory mappings a run drops JAX's compiled programs (see
+    host_memory) and compiles again: the model is the one the run that kept them made."""
+    from ghsplat_jax.train import trainer
+
+    monkeypatch.setattr(trainer, "IN_RUN_MAP_SHARE", 0.0)  # every check finds the process "near the limit"
+    monkeypatch.setattr(trainer, "MAPS_CHECK_EVERY", 10)
+    with caplog.at_level(logging.INFO, logger="ghsplat"):
+        done = train(CONFIG, tmp_path / "released", dataset=dataset())
+    if host_memory.memory_maps() is not None:  # Linux: the maps were counted and the programs dropped
+        assert caplog.text.count("released JAX's compiled programs") == 3
+    a, b = run["result"].state, done.state
+    np.testing.assert_array_equal(np.asarray(a.active), np.asarray(b.active))
+    for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(b.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
 
 
 def test_nan_step_rolls_back(tmp_path, caplog):

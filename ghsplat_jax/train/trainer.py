@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.data.tracks import pose_disagreement
-from ghsplat_jax.host_memory import reuse_freed_memory
+from ghsplat_jax.host_memory import IN_RUN_MAP_SHARE, MAPS_CHECK_EVERY, release_compiled_programs, reuse_freed_memory
 from ghsplat_jax.io_utils import code_revision
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
@@ -613,6 +613,8 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
                     stats.flush()
                     bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", n=num, its=f"{rate:.2f}")
                     last_t, last_step = now, step
+                if step % MAPS_CHECK_EVERY == 0:
+                    release_compiled_programs(IN_RUN_MAP_SHARE)  # a long run's compiles: see host_memory
                 if config.checkpoint_every and step % config.checkpoint_every == 0:
                     for fh in logs:
                         _sync(fh)
