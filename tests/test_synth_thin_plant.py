@@ -29,11 +29,23 @@ def _runs(mask: np.ndarray) -> list[int]:
 
 def test_only_the_plant_on_black(thin):
     assert [i.cls for i in thin.instances] == ["plant"]
-    view = render.render_view(thin, _cams(thin)[0])
+    view = render.render_view(thin, _cams(thin)[0], supersample=1)  # each pixel the plant's or the background's
     empty = view["instance"] == 0
     assert 0.005 < (~empty).mean() < 0.1  # a thin subject: a few % of the image
     assert np.all(view["rgb"][empty] == 0)  # a black background, not the sky
     assert view["rgb"][~empty].mean() > 0.05
+
+
+def test_photos_are_anti_aliased_as_a_camera_integrates_each_pixel(thin):
+    """A leaf edge that crosses a pixel off its centre still tints it: without that, leaves a
+    pixel or two wide are an on/off pattern that no band-limited model can fit."""
+    cam = _cams(thin)[0]
+    smooth, sampled = render.render_view(thin, cam), render.render_view(thin, cam, supersample=1)
+    empty = smooth["instance"] == 0
+    assert thin.config.render.supersample > 1
+    assert np.all(sampled["rgb"][empty] == 0)  # point-sampled: a pixel is the plant's or black
+    tinted = empty & (smooth["rgb"].max(-1) > 0.01)
+    assert tinted.sum() > 0.2 * (~empty).sum()  # partly covered pixels all along the thin edges
 
 
 def test_stems_and_leaves_are_a_few_pixels_wide(thin):

@@ -367,17 +367,30 @@ def _fmt_seeds(name: str, values: list[float], seeds: list[int]) -> str:
 
 
 # --------------------------------------------------------------------- a thin object
+_DATASET = {"preset": "thin-plant", "capture": "orbit", "views": 18, "width": 128, "height": 96, "seed": 0,
+            "points": 0, "orbit_radius": 0.5, "camera_height": 0.8, "target_height": 0.3}
+
+
+def scene_settings(spec: dict) -> dict:
+    """The resolved scene config (JSON values) of a case's `dataset`: its preset as the code has it now."""
+    from ghsplat_jax.synth import config
+
+    p = _DATASET | dict(spec)
+    cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
 def prepare_scene(spec: dict, folder: Path) -> Path:
     """A synth preset scene (`dataset = {preset, capture, views, width, height, ...}` of a train
     case) rendered into `folder`, kept while its settings hold. `points = 0`: cameras only."""
     from ghsplat_jax.synth import capture, config, dataset, scene
 
-    p = {"preset": "thin-plant", "capture": "orbit", "views": 18, "width": 128, "height": 96, "seed": 0,
-         "points": 0, "orbit_radius": 0.5, "camera_height": 0.8, "target_height": 0.3} | dict(spec)
+    p = _DATASET | dict(spec)
+    cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
+    p["scene"] = scene_settings(spec)  # a changed preset renders again
     stamp = folder / "prepare.json"
     if stamp.is_file() and json.loads(stamp.read_text()) == p:
         return folder
-    cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
     world = scene.generate_scene(cfg)
     path = capture.PathConfig(orbit_radius=float(p["orbit_radius"]), height=float(p["camera_height"]),
                               target_height=float(p["target_height"]))
@@ -707,6 +720,8 @@ def _key(case: dict, ctx) -> str:
     if case["family"] in ("train", "divergence"):
         extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "seeds": case_seeds(case, ctx),
                  "baseline": {str(k): v for k, v in sorted(ctx.baseline.items())}}
+        if case.get("dataset"):  # a preset scene: its settings as the code has them now
+            extra["scene"] = scene_settings(case["dataset"])
     elif case["family"] == "sfm_recorded":  # the rows it reads
         recorded = ctx.recorded if ctx is not None else None
         extra = {"recorded": hashlib.sha256(recorded.read_bytes()).hexdigest() if recorded and recorded.is_file()
