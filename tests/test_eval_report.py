@@ -208,6 +208,22 @@ def test_rows_and_charts_name_an_accelerator(tmp_path):
     assert labels == ["row3_x1 (NVIDIA H200)", "row1_x1"]
 
 
+def test_a_time_axis_draws_one_kind_of_machine(tmp_path):
+    rows = [{"scene": "a", "variant": "default", "train_seconds": 515.0, "psnr": 29.4, "num_gaussians": 9,
+             "device": "NVIDIA H200"},
+            {"scene": "b", "variant": "default", "train_seconds": 7005.0, "psnr": 28.6, "num_gaussians": 9},
+            {"scene": "c", "variant": "auto", "train_seconds": 610.0, "psnr": 28.7, "num_gaussians": 5,
+             "device": "cpu"}]
+    made = {p.name for p in write_charts(rows, tmp_path, "t")}
+    assert made == {"psnr_vs_time.png", "psnr_vs_time_nvidia_h200.png", "psnr_vs_count.png"}
+    cpu = json.loads((tmp_path / "psnr_vs_time.json").read_text())["series"]
+    assert sorted(p["scene"] for points in cpu.values() for p in points) == ["b", "c"]
+    gpu = json.loads((tmp_path / "psnr_vs_time_nvidia_h200.json").read_text())
+    assert gpu["title"] == "t: runs on NVIDIA H200" and [p["scene"] for p in gpu["series"]["default"]] == ["a"]
+    counts = json.loads((tmp_path / "psnr_vs_count.json").read_text())["series"]  # no time: every run
+    assert sum(len(points) for points in counts.values()) == 3
+
+
 def test_median_step_seconds_skips_the_clock_restart_of_a_resume(tmp_path):
     from ghsplat_jax.train.run_dir import STATS_NAME, median_step_seconds
 

@@ -23,7 +23,9 @@ committed OUT/results.json and exits 1 with a diff when OUT/README.md differs (n
 The goal (self-sizing issue): per scene, the auto recipe's mean test PSNR over its seeds at least
 the compact variant's, its mean count at most compact's, and each run at most 10 minutes of
 training. Reference rows trained at other code revisions and often on other hosts: their times are
-shown as they were recorded, with the device, not as a same-machine comparison.
+shown as they were recorded, with the device, not as a same-machine comparison; one trained on
+another kind of device than the scene's auto runs (an H200 against a CPU) is drawn as its PSNR
+level only, with no point on the time axis.
 """
 
 from __future__ import annotations
@@ -287,12 +289,16 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
         reached = "to the end" if c["finished"] else f"to step {c['last_step']:,} (stopped)"
         ax.plot([p["elapsed_s"] / 60 for p in pts], [p["psnr"] for p in pts], "--", marker=marker, ms=3, color=color,
                 label=f"{c['variant']}, test curve {reached} ({c['num_surfels_then'] or 0:,} surfels then)")
+    here = {r.get("device") or "cpu" for r in runs if r["scene"] == scene}
     for variant, (marker, color) in REFERENCE_STYLE.items():
         ref = refs.get((scene, variant))
-        if ref and ref.get("train_seconds"):
+        device = (ref or {}).get("device") or "cpu"
+        if ref and device not in here:  # a time axis compares one kind of machine: its PSNR only
+            ax.axhline(ref["psnr"], ls=":", color=color,
+                       label=f"{variant}, final ({ref['num_gaussians']:,} surfels) on {device}: time not comparable")
+        elif ref and ref.get("train_seconds"):
             ax.plot([ref["train_seconds"] / 60], [ref["psnr"]], marker, color=color, ms=8,
-                    label=f"{variant}, final ({ref['num_gaussians']:,} surfels; {ref.get('device') or 'cpu'}, "
-                          "earlier code)")
+                    label=f"{variant}, final ({ref['num_gaussians']:,} surfels; {device}, earlier code)")
     ax.set_xscale("log")
     ax.set_xlabel("training time (min, log scale; test scoring left out)")
     ax.set_ylabel("test PSNR (dB), held-out views")

@@ -7,6 +7,7 @@ objects: no pyplot, no global backend switch.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from ghsplat_jax.io_utils import save_figure, write_json
@@ -34,7 +35,7 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
     """One marker per run, one colour per variant, labelled by scene."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6.4, 4.4), dpi=120)
+    fig = Figure(figsize=(7.6, 4.4), dpi=120)
     ax = fig.subplots()
     for i, (variant, points) in enumerate(series.items()):
         ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, color=f"C{i}", s=36,
@@ -50,22 +51,39 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
     if title:
         ax.set_title(title)
     if any(series):
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the points, not over them
     fig.tight_layout()
     return fig
 
 
+TIME_AXES = ("train_seconds",)  # an axis in seconds compares one kind of machine only
+
+
+def by_device(rows: list[dict]) -> dict[str, list[dict]]:
+    """{device: rows} with the CPU ("cpu"; rows that name none ran before metrics named it) first."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r.get("device") or "cpu", []).append(r)
+    return dict(sorted(groups.items(), key=lambda kv: (kv[0] != "cpu", kv[0])))
+
+
 def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
-    """The PNG charts of CHARTS that have data, each with its series as JSON beside it."""
+    """The PNG charts of CHARTS that have data, each with its series as JSON beside it. A time
+    axis draws one kind of machine: the CPU's runs in STEM.png, another device's in
+    STEM_DEVICE.png (a GPU's seconds against a CPU's compare nothing)."""
     folder = Path(folder)
     made = []
     for stem, x, y, xlabel, ylabel in CHARTS:
-        series = scatter_series(rows, x, y)
-        if not series:
-            continue
-        write_json(folder / f"{stem}.json", {"x": x, "y": y, "title": title, "series": series})
-        made.append(save_figure(scatter_figure(series, xlabel, ylabel, title, log_x=True), folder / f"{stem}.png",
-                                dpi=120))
+        groups = by_device(rows) if x in TIME_AXES else {"cpu": rows}
+        for device, part in groups.items():
+            series = scatter_series(part, x, y)
+            if not series:
+                continue
+            name = stem if device == "cpu" else f"{stem}_{re.sub(r'[^a-z0-9]+', '_', device.lower()).strip('_')}"
+            label = title if x not in TIME_AXES or len(groups) == 1 else f"{title}: runs on {device}"
+            write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, "series": series})
+            made.append(save_figure(scatter_figure(series, xlabel, ylabel, label, log_x=True), folder / f"{name}.png",
+                                    dpi=120))
     return made
 
 
