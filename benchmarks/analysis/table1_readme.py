@@ -55,6 +55,8 @@ def load(results: Path = RESULTS) -> dict:
         "profile": read(results / "fusion_profile_step.json"),
         "progress": progress,
         "compact_configs": sorted(p.name.split("_compact")[0] for p in folder.glob("*_compact_config.toml")),
+        "device_time_charts": {read(p)["title"].rpartition("runs on ")[2]: p.with_suffix(".png").name
+                               for p in sorted(folder.glob("psnr_vs_time_*.json"))},
         "paper": {"l1": (float(p[0]), float(p[1])), "psnr": (float(p[2]), float(p[3])),
                   "num_gaussians": (int(p[4].replace(",", "")), int(p[5].replace(",", "")))},
     }
@@ -395,7 +397,9 @@ def render(data: dict) -> str:
     no_device = [f"{r['scene']}/{r['variant']}" for r in finished if r.get("device") is None]
     left_out = [s for s, v in data["pareto"]["scenes"].items() if "left_out" in v]
     out.append("- Each run's `metrics.json` names its device (`\"cpu\"`, or the accelerator's kind); `results.md` has "
-               "a device column and `psnr_vs_time.png` labels a GPU run. A Pareto chart leaves out a scene whose runs "
+               "a device column. A time axis draws one kind of machine: `psnr_vs_time.png` the CPU's runs"
+               + "".join(f", `{png}` the {device}'s" for device, png in data["device_time_charts"].items())
+               + ". A Pareto chart leaves out a scene whose runs "
                f"ran on different devices (`pareto.json` says so for {names(left_out) if left_out else 'none'}). "
                f"Rows evaluated before metrics named the device show none ({len(no_device)} of {len(finished)}); all "
                "of them ran on the CPU.")

@@ -59,6 +59,11 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
 TIME_AXES = ("train_seconds",)  # an axis in seconds compares one kind of machine only
 
 
+def device_slug(device: str) -> str:
+    """A device's name as a file name's part: "NVIDIA H200" -> "nvidia_h200"."""
+    return re.sub(r"[^a-z0-9]+", "_", device.lower()).strip("_")
+
+
 def by_device(rows: list[dict]) -> dict[str, list[dict]]:
     """{device: rows} with the CPU ("cpu"; rows that name none ran before metrics named it) first."""
     groups: dict[str, list[dict]] = {}
@@ -79,7 +84,7 @@ def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
             series = scatter_series(part, x, y)
             if not series:
                 continue
-            name = stem if device == "cpu" else f"{stem}_{re.sub(r'[^a-z0-9]+', '_', device.lower()).strip('_')}"
+            name = stem if device == "cpu" else f"{stem}_{device_slug(device)}"
             label = title if x not in TIME_AXES or len(groups) == 1 else f"{title}: runs on {device}"
             write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, "series": series})
             made.append(save_figure(scatter_figure(series, xlabel, ylabel, label, log_x=True), folder / f"{name}.png",

@@ -19,7 +19,7 @@ check); at its end the level is judged by the PSNR gained since the previous lev
 that trend over the steps between them, per doubling of the count. Under `min_gain_db` the count
 freezes for the rest of the run (relocation and noise go on); else the next level grows. The
 hold's trend is read right after a growth, while the new surfels still settle, so it over-states
-the time's share and errs towards fewer surfels: on all eight Table 1 segments (12 runs) and on
+the time's share and errs towards fewer surfels: on all eight Table 1 segments (13 runs) and on
 fern the first judged doubling read -0.98 to +0.32 dB net of a trend of 0.5-1.9 dB per 1000 steps,
 and the count froze at twice its size at full resolution (fern 123k, rows 25-34k), although a row model of 55k
 surfels ends 0.7 dB above one of 29k after the same steps. `max_surfels` is a safety ceiling only
