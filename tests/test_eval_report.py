@@ -220,6 +220,8 @@ def test_a_time_axis_draws_one_kind_of_machine(tmp_path):
     assert sorted(p["scene"] for points in cpu.values() for p in points) == ["b", "c"]
     gpu = json.loads((tmp_path / "psnr_vs_time_nvidia_h200.json").read_text())
     assert gpu["title"] == "t: runs on NVIDIA H200" and [p["scene"] for p in gpu["series"]["default"]] == ["a"]
+    assert gpu["device"] == "NVIDIA H200"
+    assert json.loads((tmp_path / "psnr_vs_time.json").read_text())["device"] == "cpu"
     counts = json.loads((tmp_path / "psnr_vs_count.json").read_text())["series"]  # no time: every run
     assert sum(len(points) for points in counts.values()) == 3
 

@@ -292,11 +292,13 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
     here = {r.get("device") or "cpu" for r in runs if r["scene"] == scene}
     for variant, (marker, color) in REFERENCE_STYLE.items():
         ref = refs.get((scene, variant))
-        device = (ref or {}).get("device") or "cpu"
-        if ref and device not in here:  # a time axis compares one kind of machine: its PSNR only
+        if not ref:
+            continue
+        device = ref.get("device") or "cpu"
+        if device not in here:  # a time axis compares one kind of machine: its PSNR only
             ax.axhline(ref["psnr"], ls=":", color=color,
                        label=f"{variant}, final ({ref['num_gaussians']:,} surfels) on {device}: time not comparable")
-        elif ref and ref.get("train_seconds"):
+        elif ref.get("train_seconds"):
             ax.plot([ref["train_seconds"] / 60], [ref["psnr"]], marker, color=color, ms=8,
                     label=f"{variant}, final ({ref['num_gaussians']:,} surfels; {device}, earlier code)")
     ax.set_xscale("log")

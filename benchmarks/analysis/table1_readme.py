@@ -55,7 +55,7 @@ def load(results: Path = RESULTS) -> dict:
         "profile": read(results / "fusion_profile_step.json"),
         "progress": progress,
         "compact_configs": sorted(p.name.split("_compact")[0] for p in folder.glob("*_compact_config.toml")),
-        "device_time_charts": {read(p)["title"].rpartition("runs on ")[2]: p.with_suffix(".png").name
+        "device_time_charts": {read(p)["device"]: p.with_suffix(".png").name
                                for p in sorted(folder.glob("psnr_vs_time_*.json"))},
         "paper": {"l1": (float(p[0]), float(p[1])), "psnr": (float(p[2]), float(p[3])),
                   "num_gaussians": (int(p[4].replace(",", "")), int(p[5].replace(",", "")))},

@@ -86,7 +86,8 @@ def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
                 continue
             name = stem if device == "cpu" else f"{stem}_{device_slug(device)}"
             label = title if x not in TIME_AXES or len(groups) == 1 else f"{title}: runs on {device}"
-            write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, "series": series})
+            meta = {"device": device} if x in TIME_AXES else {}  # the one kind of machine a time axis draws
+            write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, **meta, "series": series})
             made.append(save_figure(scatter_figure(series, xlabel, ylabel, label, log_x=True), folder / f"{name}.png",
                                     dpi=120))
     return made

@@ -371,23 +371,24 @@ _DATASET = {"preset": "thin-plant", "capture": "orbit", "views": 18, "width": 12
             "points": 0, "orbit_radius": 0.5, "camera_height": 0.8, "target_height": 0.3}
 
 
-def scene_settings(spec: dict) -> dict:
-    """The resolved scene config (JSON values) of a case's `dataset`: its preset as the code has it now."""
+def scene_settings(spec: dict) -> tuple[dict, object, dict]:
+    """A case's `dataset` with its defaults filled in, the scene config its preset resolves to,
+    and that config as JSON values (the preset as the code has it now: a changed preset renders
+    the scene, and runs the case, again)."""
     from ghsplat_jax.synth import config
 
     p = _DATASET | dict(spec)
     cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
-    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+    return p, cfg, json.loads(json.dumps(dataclasses.asdict(cfg)))
 
 
 def prepare_scene(spec: dict, folder: Path) -> Path:
     """A synth preset scene (`dataset = {preset, capture, views, width, height, ...}` of a train
     case) rendered into `folder`, kept while its settings hold. `points = 0`: cameras only."""
-    from ghsplat_jax.synth import capture, config, dataset, scene
+    from ghsplat_jax.synth import capture, dataset, scene
 
-    p = _DATASET | dict(spec)
-    cfg = config.preset_config(p["preset"], {"seed": int(p["seed"])})
-    p["scene"] = scene_settings(spec)  # a changed preset renders again
+    p, cfg, resolved = scene_settings(spec)
+    p["scene"] = resolved
     stamp = folder / "prepare.json"
     if stamp.is_file() and json.loads(stamp.read_text()) == p:
         return folder
@@ -721,7 +722,7 @@ def _key(case: dict, ctx) -> str:
         extra = {"train": ctx.train_base.to_dict(), "prepare": ctx.prepare, "seeds": case_seeds(case, ctx),
                  "baseline": {str(k): v for k, v in sorted(ctx.baseline.items())}}
         if case.get("dataset"):  # a preset scene: its settings as the code has them now
-            extra["scene"] = scene_settings(case["dataset"])
+            extra["scene"] = scene_settings(case["dataset"])[2]
     elif case["family"] == "sfm_recorded":  # the rows it reads
         recorded = ctx.recorded if ctx is not None else None
         extra = {"recorded": hashlib.sha256(recorded.read_bytes()).hexdigest() if recorded and recorded.is_file()
