@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sfm_models import move_view, synthetic_model
 
 from ghsplat_jax.sfm import crosscheck, folds
 
@@ -90,43 +91,17 @@ def test_leave_one_out_triangulation_uses_only_the_other_rays():
     assert not crosscheck.leave_one_out_points(np.zeros(3, int), rays_far, centres[:3], 2, 2.0)[1].any()
 
 
-def _model(frames: int = 12):
-    pycolmap = pytest.importorskip("pycolmap")
-    options = pycolmap.SyntheticDatasetOptions(
-        num_rigs=1, num_cameras_per_rig=1, num_frames_per_rig=frames, num_points3D=300,
-        camera_width=640, camera_height=480, camera_params=[600.0, 320.0, 240.0, 0.0],
-        num_points2D_without_point3D=0)
-    if hasattr(pycolmap, "set_random_seed"):
-        pycolmap.set_random_seed(0)
-    return pycolmap.synthesize_dataset(options)
-
-
-def _move(reconstruction, image_id: int, shift=(0.0, 0.0, 0.0), turn_deg: float = 0.0) -> str:
-    """Move a view's pose in the model (its observations stay): shifted centre, turned about y."""
-    import pycolmap
-
-    image = reconstruction.images[image_id]
-    frame = reconstruction.frames[image.frame_id]
-    w2c = frame.rig_from_world.matrix()
-    a = np.radians(turn_deg)
-    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    rotation = turn @ w2c[:, :3]
-    centre = -w2c[:, :3].T @ w2c[:, 3] + np.asarray(shift)
-    frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ centre)
-    return image.name
-
-
 def test_cross_check_confirms_an_exact_model():
-    report = crosscheck.cross_check(_model())
+    report = crosscheck.cross_check(synthetic_model())
     assert report["num_views"] == report["num_confirmed"] == 12 and report["flagged"] == []
     assert report["largest_centre_rel"] < 1e-6 and report["largest_rotation_deg"] < 1e-4
 
 
 @pytest.mark.parametrize("shift, turn", [((0.3, 0.0, 0.0), 0.0), ((0.0, 0.0, 0.0), 3.0)])
 def test_cross_check_flags_and_drops_a_moved_view(shift, turn):
-    model = _model()
+    model = synthetic_model()
     ids = sorted(model.reg_image_ids())
-    moved = _move(model, ids[2], shift, turn)
+    moved = move_view(model, ids[2], shift, turn)
     report = crosscheck.cross_check(model)
     # the moved view lies farthest off; its wrong rays can push a few others' estimates past the
     # thresholds too (every view here sees every point), which check_and_drop's one-at-a-time
@@ -144,7 +119,7 @@ def test_cross_check_flags_and_drops_a_moved_view(shift, turn):
 
 
 def test_views_the_others_cannot_confirm_are_flagged():
-    model = _model(6)
+    model = synthetic_model(6)
     report = crosscheck.cross_check(model, crosscheck.CrossCheckOptions(min_points=1000))
     assert report["num_confirmed"] == 0 and len(report["flagged"]) == 6
     assert all("cannot be re-localised" in f["reason"] for f in report["flagged"])

@@ -79,7 +79,12 @@ def test_fern_registers_all_and_reports_partial_runs(tmp_path, capsys):
     assert report["unregistered_images"] == ["zz_noise_a.png", "zz_noise_b.png"]
     assert report["mean_reprojection_error_px"] < 1.5
     assert report["track_length"]["mean"] > 3
-    assert set(report["timings_s"]) >= {"extraction", "matching", "mapping", "alignment", "undistortion"}
+    assert set(report["timings_s"]) >= {"extraction", "matching", "mapping", "second_estimate", "alignment",
+                                        "undistortion"}
+    # the global mapper's second estimate of the forward-facing capture agrees with the model
+    second = report["second_estimate"]
+    assert second["verdict"] == "agree" and second["num_common"] == 20, second
+    assert "Second estimate: the global mapper's second estimate agrees on 20 views" in captured.out
 
     # OUT is ready for training: PINHOLE model of the 20 undistorted images, aligned.
     model = pycolmap.Reconstruction(str(out / "sparse" / "0"))

@@ -105,6 +105,7 @@ def run(case: str, photos: Path, out: Path, variant: str) -> dict:
     chain = (report.get("fold_diagnostics") or {}).get("rotation_chain") or {}
     check = report.get("cross_check") or {}
     dis = report.get("disambiguation") or {}
+    second = report.get("second_estimate") or {}
     return {
         "case": case, "variant": variant, "status": report["status"],
         "registered": report.get("num_registered"), "views": report["num_images"],
@@ -119,19 +120,51 @@ def run(case: str, photos: Path, out: Path, variant: str) -> dict:
         "cross_check_rounds": check.get("rounds", []),
         "cross_check_largest_kept": [check.get("largest_centre_rel"), check.get("largest_rotation_deg")],
         "cross_check_s": (report.get("timings_s") or {}).get("cross_check"),
+        **second_estimate_fields(second),
+        "second_estimate_s": (report.get("timings_s") or {}).get("second_estimate"),
         "sfm_s": report["timings_s"]["total"],
     }
+
+
+def second_estimate_fields(second: dict) -> dict:
+    """A results row's record of the global mapper's second estimate (second_estimate.py)."""
+    return {"second_estimate": second.get("verdict", "-"),
+            "second_estimate_disagree": [v["name"] for v in second.get("disagree", [])],
+            "second_estimate_largest": [second.get("largest_centre_rel"), second.get("largest_rotation_deg")]}
+
+
+def recheck(case: str, work: Path, earlier: dict) -> dict:
+    """The second estimate applied to the `after` model an earlier run left in WORK/case (its
+    database and its aligned model: the same views and tracks), as a results row: the earlier
+    row's status and errors, the verdict, and the status the current checks would give."""
+    import pycolmap
+
+    from ghsplat_jax.sfm import second_estimate
+
+    run_dir = work / case / "sfm_after"
+    pycolmap.logging.minloglevel = 2
+    start = time.perf_counter()
+    second = second_estimate.check(run_dir / "distorted" / "database.db", work / _base(case) / "photos" / "images",
+                                   pycolmap.Reconstruction(str(run_dir / "sparse" / "0")),
+                                   run_dir / "distorted" / "second_estimate")
+    status = "inconsistent" if earlier["status"] == "ok" and second["verdict"] == "disagree" else earlier["status"]
+    return {**{k: earlier[k] for k in ("case", "registered", "views", "centre_error_max_pct",
+                                       "rotation_error_max_deg", "cross_check_dropped")},
+            "variant": "recheck", "mapped_status": earlier["status"], "mapped_revision": earlier["git_revision"],
+            "status": status, **second_estimate_fields(second),
+            "second_estimate_s": round(time.perf_counter() - start, 3)}
 
 
 REPEAT = re.compile(r"(row\d_x[01])-mt#\d+")
 CENTRE_GOAL_PCT, ROTATION_GOAL_DEG = 1.0, 2.0  # no "ok" model beyond these (largest view error)
 
 
-def repeat_summary(rows: list[dict], revision: str) -> str:
-    """The goal check over the multithreaded repeats of the row segments mapped at `revision`
+def repeat_summary(rows: list[dict], revision: str, variant: str = "after") -> str:
+    """The goal check over the multithreaded repeats of the row segments checked at `revision`
     (the checks of that code only): per segment, how many ended "ok" and the largest errors of
-    those that did; '' when there are none."""
-    picked = [r for r in rows if r["variant"] == "after" and REPEAT.fullmatch(r["case"])
+    those that did; '' when there are none. `variant` "recheck": the earlier models held against
+    the second estimate offline."""
+    picked = [r for r in rows if r["variant"] == variant and REPEAT.fullmatch(r["case"])
               and r.get("git_revision") == revision]
     if not picked:
         return ""
@@ -149,46 +182,70 @@ def repeat_summary(rows: list[dict], revision: str) -> str:
                       "centre": max((r["centre_error_max_pct"] for r in ok), default=None),
                       "rotation": max((r["rotation_error_max_deg"] for r in ok), default=None),
                       "beyond": ", ".join(r["case"] for r in beyond) or "-",
-                      "dropped": sum(len(r["cross_check_dropped"]) for r in runs)})
-    cols = ("segment", "repeats", "ok", "other", "centre", "rotation", "beyond", "dropped")
+                      "dropped": sum(len(r["cross_check_dropped"]) for r in runs),
+                      "inconsistent": ", ".join(r["case"] for r in runs if r["status"] == "inconsistent") or "-"})
+    cols = ("segment", "repeats", "ok", "other", "centre", "rotation", "beyond", "dropped", "inconsistent")
     heads = ("segment", "repeats (-mt)", "ended ok", "other statuses", "largest centre error of an ok model, % extent",
              "largest rotation error of an ok model, deg", f"ok beyond {CENTRE_GOAL_PCT}% or {ROTATION_GOAL_DEG} deg",
-             "views the cross-check dropped (all repeats)")
+             "views the cross-check dropped (all repeats)", "called inconsistent by the second estimate")
     verdict = (f"**{over} ok model(s) beyond the bounds** (goal: none)" if over else
                f"no ok model beyond {CENTRE_GOAL_PCT}% of the extent or {ROTATION_GOAL_DEG} degrees (goal met)")
-    return ("## Multithreaded repeats at this revision: the goal check\n\n"
-            f"Every row segment mapped with all CPU threads (`--threads -1`), whose mapper differs from run to run, "
-            f"with the current checks. Goal: no model called ok with a view beyond {CENTRE_GOAL_PCT}% of the extent "
+    segments_any = sum(row["ok"] > 0 for row in table)
+    title, lead = {
+        "after": ("Multithreaded repeats at this revision: the goal check",
+                  "Every row segment mapped with all CPU threads (`--threads -1`), whose mapper differs from run "
+                  "to run, with the current checks."),
+        "recheck": (f"The earlier repeats held against the second estimate: the goal check at {revision[:10]}",
+                    "The multithreaded models of an earlier revision (each row's `mapped_revision`), each held "
+                    "offline against the global mapper's estimate from the pairs it confirms "
+                    "(`--recheck`); a model the two place differently is `inconsistent`."),
+    }[variant]
+    return (f"## {title}\n\n{lead} Goal: no model called ok with a view beyond {CENTRE_GOAL_PCT}% of the extent "
             f"or {ROTATION_GOAL_DEG} degrees, and at least 7 of the 8 segments still ok. Result: {verdict}; "
-            f"{segments_ok} of {len(table)} segments ok in every repeat.\n\n" + markdown_table(table, cols, heads)
-            + "\n")
+            f"{segments_ok} of {len(table)} segments ok in every repeat, {segments_any} in at least one.\n\n"
+            + markdown_table(table, cols, heads) + "\n")
 
 
 def readme_text(rows: list[dict], revision: str) -> str:
     """README.md's text: the table of `rows` (results.json's) made at code revision `revision`."""
+    from ghsplat_jax.sfm.crosscheck import CrossCheckOptions
+    from ghsplat_jax.sfm.second_estimate import SecondEstimateOptions
+
+    loo, second = CrossCheckOptions(), SecondEstimateOptions()
     table = []
     for r in rows:
         flagged = r["cross_check_dropped"]
         truth = r.get("flagged_true_errors", {})
         table.append({**r, "flagged": ", ".join(f"{n} ({truth[n][0]:.2f}%, {truth[n][1]:.1f} deg)" if n in truth
                                                 else n for n in flagged) or "-",
-                      "drift": f"{r['drift_deg']} / {r['drift_bound_deg']}" if r["drift_deg"] is not None else "-"})
+                      "drift": f"{r['drift_deg']} / {r['drift_bound_deg']}" if r.get("drift_deg") is not None else "-"})
+        verdict = r.get("second_estimate", "-")
+        if verdict == "disagree":
+            verdict += " (" + ", ".join(r["second_estimate_disagree"][:4]) + (", ..." if len(
+                r["second_estimate_disagree"]) > 4 else "") + ")"
+        table[-1]["second"] = verdict
     cols = ("case", "variant", "status", "registered", "views", "centre_error_max_pct", "rotation_error_max_deg",
-            "drift", "flagged", "cross_check_s", "sfm_s")
+            "drift", "flagged", "cross_check_s", "second", "second_estimate_s", "sfm_s")
     heads = ("case", "checks", "status", "registered", "photos", "max centre error % extent", "max rotation error deg",
              "chain drift / bound deg", "cross-check dropped (true error in the earlier model)", "cross-check s",
-             "SfM s")
-    return ("# SfM checks against the exact cameras: rotation-chain bound and leave-one-out cross-check\n\n"
+             "second estimate", "second estimate s", "SfM s")
+    return ("# SfM checks against the exact cameras: rotation-chain bound, leave-one-out cross-check, "
+            "second estimate\n\n"
             "Made by `benchmarks/robustness/sfm_crosscheck.py` from results.json; do not edit by hand. "
             "`before`: the fixed 30-degree rotation-chain bound and "
             "no cross-check; `after`: the bound scaled with the chain's own link errors and every view "
-            "re-localised with itself left out (views landing more than 0.3% of the extent or 0.6 degrees "
-            "away are dropped). Errors are of the kept views against the generator's exact cameras "
+            f"re-localised with itself left out (views landing more than {100 * loo.max_centre_rel:g}% of the extent "
+            f"or {loo.max_rotation_deg:g} degrees away are dropped), then the model held against the global "
+            f"mapper's estimate from the pairs it confirms (a view more than {100 * second.max_centre_rel:g}% of "
+            f"the extent or {second.max_rotation_deg:g} degrees away makes it `inconsistent`; rows "
+            "with a second estimate only). `recheck`: an earlier `after` model held against that estimate "
+            "offline. Errors are of the kept views against the generator's exact cameras "
             "(similarity-aligned), % of the extent. Row segments: 60 photos of 384x288 round one end of "
             "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
             "(`--capture orbit`, `--align none`); -mt: all CPU threads.\n\n"
             f"Git revision {revision}; machine in results.json. What each run shows, and the "
             "models checked offline: NOTES.md.\n\n" + repeat_summary(rows, revision)
+            + repeat_summary(rows, revision, "recheck")
             + "## Every run\n\n" + markdown_table(table, cols, heads))
 
 
@@ -219,6 +276,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["row3_x0", "row3_x1", "orbit72"])
     ap.add_argument("--variants", nargs="+", default=["before", "after"], choices=["before", "after"])
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "sfm_crosscheck")
+    ap.add_argument("--recheck", action="store_true",
+                    help="map nothing: hold the `after` models an earlier run left in WORK against the second "
+                         "estimate (rows of variant 'recheck')")
     ap.add_argument("--render", action="store_true", help="run nothing: write README.md from results.json")
     ap.add_argument("--check", action="store_true",
                     help="run nothing: exit 1 with a diff if README.md differs from what results.json gives")
@@ -231,6 +291,17 @@ def main(argv=None) -> int:
         return 0
     old = RESULTS / "results.json"
     rows = json.loads(old.read_text())["rows"] if old.is_file() else []
+    if args.recheck:
+        for case in args.cases:
+            earlier = next((r for r in rows if (r["case"], r["variant"]) == (case, "after")), None)
+            if earlier is None or not (args.work / case / "sfm_after" / "sparse" / "0").is_dir():
+                raise SystemExit(f"{case}: no `after` row in results.json or no model in {args.work / case}")
+            row = recheck(case, args.work, earlier) | {"git_revision": code_revision()}
+            rows = [r for r in rows if (r["case"], r["variant"]) != (case, "recheck")] + [row]
+            print({k: row[k] for k in ("case", "mapped_status", "status", "second_estimate", "second_estimate_largest",
+                                       "centre_error_max_pct", "rotation_error_max_deg")}, flush=True)
+            write(rows)
+        return 0
     for case in args.cases:
         photos = args.work / _base(case) / "photos"
         seconds = render(case, photos)

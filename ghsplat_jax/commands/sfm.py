@@ -6,7 +6,9 @@
 
 Exit status: 0 when at least --min-registered-fraction of the images registered,
 3 when fewer did (or none), 4 when the fold diagnostics suspect a row mapped onto itself
-(self-similar plants; the model is written for inspection only), 1 on bad input or settings.
+(self-similar plants; the model is written for inspection only), 5 when the global mapper's
+second estimate places views elsewhere than the model does (a bent model; written for inspection
+only), 1 on bad input or settings.
 """
 
 from __future__ import annotations
@@ -77,6 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="report the fold diagnostics but do not fail the run on them")
     d.add_argument("--no-cross-check", action="store_true",
                    help="keep views that, re-localised with themselves left out, land elsewhere")
+    d.add_argument("--no-second-estimate", action="store_true",
+                   help="do not hold the model against the global mapper's estimate from the pairs it "
+                        "confirms (a model the two place differently ends 'inconsistent', exit 5)")
 
     v = parser.add_argument_group("video and frame folders")
     v.add_argument("--select-frames", action="store_true",
@@ -144,7 +149,7 @@ def build_options(args: argparse.Namespace):
     return SfmOptions(
         disambiguate=args.disambiguate, capture_order=args.capture_order,
         disambiguate_options=disambiguation, fold_check=not args.no_fold_check,
-        cross_check=not args.no_cross_check,
+        cross_check=not args.no_cross_check, second_estimate=not args.no_second_estimate,
         matching=args.matching, mapper=args.mapper, camera_model=args.camera_model,
         camera_mode=args.camera_mode, max_size=args.max_size or None,
         max_features=args.max_features, sift_peak_threshold=args.sift_peak_threshold,
@@ -173,7 +178,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"Report: {Path(args.out) / 'sfm_report.json'}")
     code, message = verdict(report["status"], report.get("fold_diagnostics", {}).get("reasons", []),
                             report.get("num_registered", 0), report["num_images"], options.min_registered_fraction,
-                            args.out, report.get("diagnosis"))
+                            args.out, report.get("diagnosis"), report.get("second_estimate"))
     if message:
         print(message, file=sys.stderr)
     return code

@@ -102,10 +102,12 @@ def _sfm_row(case: dict, r: dict, source: str) -> dict:
     rmse = r.get("centre_rmse_pct")
     diagnosis = r.get("diagnosis") or []
     code, message = verdict(r["status"], r.get("fold_reasons", []), r["registered"], r["views"], 0.9, "OUT",
-                            diagnosis)
+                            diagnosis, r.get("second_estimate"))
     ok = r["status"] == "ok" and rmse is not None and rmse <= SFM_GOAL_PCT
     if r["status"] == "folded":
         detection = "fold check: status folded, exit 4"
+    elif r["status"] == "inconsistent":
+        detection = "second estimate (global mapper): status inconsistent, exit 5"
     elif r["status"] in ("partial", "failed"):
         detection = f"registered-fraction check (< 0.9): status {r['status']}, exit 3" + (
             f"; diagnosed: {', '.join(dict.fromkeys(d['cause'] for d in diagnosis))}" if diagnosis else "")

@@ -51,7 +51,7 @@ class CrossCheckOptions:
     refine_after_drop: bool = True
 
 
-def _rotation_angle_deg(r: np.ndarray) -> float:
+def rotation_angle_deg(r: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
 
 
@@ -132,6 +132,28 @@ def relocalise(xy: np.ndarray, xyz: np.ndarray, camera, options: CrossCheckOptio
     return result["cam_from_world"].matrix(), int(result["num_inliers"])
 
 
+def _extent_and_depth(reconstruction, point_ids: np.ndarray, centres: np.ndarray) -> tuple[float, float]:
+    """(extent: twice the largest distance of a registered centre from their centroid, median
+    depth of the observed points); point_ids and centres as _observations returns them."""
+    stacked = np.array([reconstruction.images[i].projection_center()
+                        for i in reconstruction.reg_image_ids()]).reshape(-1, 3)
+    extent = 2.0 * float(np.max(np.linalg.norm(stacked - stacked.mean(0), axis=1))) if len(stacked) else 0.0
+    depth = 0.0
+    if len(point_ids):
+        xyz_model = np.array([reconstruction.points3D[int(p)].xyz for p in point_ids])
+        depth = float(np.median(np.linalg.norm(xyz_model - centres, axis=1)))
+    return extent, depth
+
+
+def model_scale(reconstruction) -> float:
+    """What centre deviations are measured against: the extent, or twice the median depth of the
+    observed points when that is larger (a forward-facing capture, cameras close together and the
+    scene far, places its centres to a share of the depth, not of its small extent)."""
+    _, point_ids, _, _, centres = _observations(reconstruction)
+    extent, depth = _extent_and_depth(reconstruction, point_ids, centres)
+    return max(extent, 2.0 * depth)
+
+
 def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()) -> dict:
     """Every registered view re-localised with itself left out, against the model's pose.
     Returns a JSON-ready dict: per-view numbers ("views"), the flagged views ("flagged", names
@@ -139,15 +161,7 @@ def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()
     image_ids, point_ids, xys, rays, centres = _observations(reconstruction)
     reg = sorted(reconstruction.reg_image_ids())
     model_centres = {i: reconstruction.images[i].projection_center() for i in reg}
-    stacked = np.array(list(model_centres.values())).reshape(-1, 3)
-    extent = 2.0 * float(np.max(np.linalg.norm(stacked - stacked.mean(0), axis=1))) if len(stacked) else 0.0
-    # Centres are measured against the extent, or twice the median depth of the observed points
-    # when that is larger: a forward-facing capture (cameras close together, scene far) places
-    # its centres to a share of the depth, not of its small extent.
-    depth = 0.0
-    if len(point_ids):
-        xyz_model = np.array([reconstruction.points3D[int(p)].xyz for p in point_ids])
-        depth = float(np.median(np.linalg.norm(xyz_model - centres, axis=1)))
+    extent, depth = _extent_and_depth(reconstruction, point_ids, centres)
     scale = max(extent, 2.0 * depth)
     _, point_index = np.unique(point_ids, return_inverse=True)
     xyz, usable = leave_one_out_points(point_index, rays, centres, options.min_track, options.min_angle_deg)
@@ -172,7 +186,7 @@ def cross_check(reconstruction, options: CrossCheckOptions = CrossCheckOptions()
         model = image.cam_from_world().matrix()
         centre = -w2c[:, :3].T @ w2c[:, 3]
         centre_rel = float(np.linalg.norm(centre - model_centres[image_id])) / max(scale, 1e-12)
-        rotation = _rotation_angle_deg(w2c[:, :3] @ model[:, :3].T)
+        rotation = rotation_angle_deg(w2c[:, :3] @ model[:, :3].T)
         entry.update(confirmed=True, num_inliers=inliers, centre_rel=round(centre_rel, 5),
                      rotation_deg=round(rotation, 3))
         views.append(entry)

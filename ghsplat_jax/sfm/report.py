@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 
-from ghsplat_jax.sfm import diagnose
+from ghsplat_jax.sfm import diagnose, second_estimate
 
 # `ghsplat sfm` exit status by outcome (verdict)
 EXIT_BAD_INPUT = 1
 EXIT_TOO_FEW_REGISTERED = 3
 EXIT_FOLDED = 4
+EXIT_INCONSISTENT = 5
 
 
 def _finite(value) -> float | None:
@@ -128,6 +129,8 @@ def summary_text(report: dict) -> str:
                      + (f"; {len(dropped)} landed elsewhere or could not be confirmed and were left out "
                         f"({', '.join(dropped[:10])}{', ...' if len(dropped) > 10 else ''})."
                         if dropped else "; none lands elsewhere."))
+    if report.get("second_estimate"):
+        lines.append("Second estimate: " + second_estimate.summary(report["second_estimate"]) + ".")
     alignment = report.get("alignment", {})
     if alignment.get("method") == "greenhouse":
         lines.append(f"Aligned: up from {alignment['up_source']}, row from {alignment['row_source']}, "
@@ -173,11 +176,16 @@ def _fold_lines(report: dict) -> list[str]:
 
 
 def verdict(status: str, fold_reasons: list[str], registered: int, num_images: int, needed: float,
-            out, diagnosis: list[dict] | None = None) -> tuple[int, str | None]:
+            out, diagnosis: list[dict] | None = None, second: dict | None = None) -> tuple[int, str | None]:
     """(exit code, the message `ghsplat sfm` prints on stderr, or None) for a run's status; a
-    refusal for too few registered images names the likely causes (`diagnosis`, diagnose.py)."""
+    refusal for too few registered images names the likely causes (`diagnosis`, diagnose.py), an
+    inconsistent model the views the second estimate places elsewhere (`second`, second_estimate.py)."""
     if status == "ok":
         return 0, None
+    if status == "inconsistent":
+        why = second_estimate.summary(second) if second else "the global mapper's second estimate disagrees"
+        return EXIT_INCONSISTENT, (f"ghsplat sfm: {why}; the model is in {out} for inspection only: do not train "
+                                   "on it (--no-second-estimate to accept it)")
     if status == "folded":
         return EXIT_FOLDED, (f"ghsplat sfm: the model looks folded ({'; '.join(fold_reasons)}); it is in {out} for "
                              "inspection only: do not train on it (--no-fold-check to accept it)")
