@@ -52,6 +52,9 @@ def test_psnr_outliers_name_the_views_far_below_their_split():
     assert psnr_outliers(rows[:4]) == []  # within 3 dB: none
     spread = [{"name": f"v{i}", "psnr": p} for i, p in enumerate([20.0, 24.0, 28.0, 32.0, 36.0, 27.0])]
     assert psnr_outliers(spread) == []  # a wide split: 4 x MAD is the margin
+    clean = [{"name": f"v{i}", "psnr": p} for i, p in enumerate([46.0, 46.2, 45.9, 46.1, 41.7, 43.0])]
+    assert psnr_outliers(clean) == []  # far under the median, but rendered within 1.8% RMS of the photo
+    assert [o["name"] for o in psnr_outliers(clean, clean_db=50.0)] == ["v4"]
 
 
 def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
