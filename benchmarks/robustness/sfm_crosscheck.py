@@ -7,7 +7,8 @@ rotation-chain bound, no cross-check) and with the current ones.
 Cases: rowR_xE (R in 0-3, E in x0/x1; 60 views of 384x288 round that end of row R of the
 default four-row greenhouse, half the row: experiments/table1_greenhouse.toml [prepare]),
 orbitN (N views of 384x288 round the single plant of benchmarks/configs/orbit_plant.toml,
-mapped with --align none), a "-mt" suffix maps with every CPU thread (--threads -1), and a
+mapped with --align none), walkN (N views of 384x288 of a hand-held walk round the whole of row 0:
+a long video-like walk), a "-mt" suffix maps with every CPU thread (--threads -1), and a
 "#k" suffix names a repeat (the multithreaded mapper differs from run to run).
 Photos are rendered once into WORK/case/photos and kept. Every run is `run_sfm` as
 `ghsplat sfm --max-size 384` runs it; the model is scored with compare_model_dirs, and the
@@ -57,8 +58,12 @@ def render(case: str, photos: Path) -> float:
     elif m := re.fullmatch(r"orbit(\d+)", base):
         world = scene.generate_scene(config.load_config(ORBIT_CONFIG))
         cams = capture.capture_path(world, "orbit", int(m[1]), width=WIDTH, height=HEIGHT, seed=world.config.seed)
+    elif m := re.fullmatch(r"walk(\d+)", base):
+        world = scene.generate_scene(config.SceneConfig())
+        cams = capture.capture_path(world, "handheld", int(m[1]), row=0, width=WIDTH, height=HEIGHT,
+                                    seed=world.config.seed)
     else:
-        raise SystemExit(f"unknown case {case!r} (rowR_xE or orbitN, optional -mt)")
+        raise SystemExit(f"unknown case {case!r} (rowR_xE, orbitN or walkN, optional -mt)")
     dataset.write_dataset(world, cams, photos, meshes=False, overwrite=True, progress=False)
     return time.perf_counter() - start
 
@@ -242,7 +247,8 @@ def readme_text(rows: list[dict], revision: str) -> str:
             "offline. Errors are of the kept views against the generator's exact cameras "
             "(similarity-aligned), % of the extent. Row segments: 60 photos of 384x288 round one end of "
             "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
-            "(`--capture orbit`, `--align none`); -mt: all CPU threads.\n\n"
+            "(`--capture orbit`, `--align none`); walkN: N photos of a hand-held walk round the whole of row 0; "
+            "-mt: all CPU threads.\n\n"
             f"Git revision {revision}; machine in results.json. What each run shows, and the "
             "models checked offline: NOTES.md.\n\n" + repeat_summary(rows, revision)
             + repeat_summary(rows, revision, "recheck")
