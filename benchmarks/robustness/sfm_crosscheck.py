@@ -192,7 +192,13 @@ REPEAT = re.compile(r"(row\d_x[01])-mt#\d+")
 CENTRE_GOAL_PCT, ROTATION_GOAL_DEG = 1.0, 2.0  # no "ok" model beyond these (largest view error)
 
 
-def repeat_summary(rows: list[dict], revision: str, variant: str = "after") -> str:
+def latest_revision(rows: list[dict], variant: str) -> str | None:
+    """The code revision of the multithreaded repeats of `variant` appended last (None without any)."""
+    picked = [r.get("git_revision") for r in rows if r["variant"] == variant and REPEAT.fullmatch(r["case"])]
+    return picked[-1] if picked else None
+
+
+def repeat_summary(rows: list[dict], revision: str | None, variant: str = "after") -> str:
     """The goal check over the multithreaded repeats of the row segments checked at `revision`
     (the checks of that code only): per segment, how many ended "ok" and the largest errors of
     those that did; '' when there are none. `variant` "recheck": the earlier models held against
@@ -225,7 +231,7 @@ def repeat_summary(rows: list[dict], revision: str, variant: str = "after") -> s
                f"no ok model beyond {CENTRE_GOAL_PCT}% of the extent or {ROTATION_GOAL_DEG} degrees (goal met)")
     segments_any = sum(row["ok"] > 0 for row in table)
     title, lead = {
-        "after": ("Multithreaded repeats at this revision: the goal check",
+        "after": (f"Multithreaded repeats: the goal check at {revision[:10]}",
                   "Every row segment mapped with all CPU threads (`--threads -1`), whose mapper differs from run "
                   "to run, with the current checks."),
         "recheck": (f"The earlier repeats held against the second estimate: the goal check at {revision[:10]}",
@@ -292,9 +298,10 @@ def readme_text(rows: list[dict], revision: str) -> str:
             "a row of the default greenhouse (Table 1's capture); orbitN: N photos round one plant "
             "(`--capture orbit`, `--align none`); walkN: N photos of a hand-held walk round the whole of row 0; "
             "-mt: all CPU threads.\n\n"
-            f"Git revision {revision}; machine in results.json. What each run shows, and the "
-            "models checked offline: NOTES.md.\n\n" + repeat_summary(rows, revision)
-            + repeat_summary(rows, revision, "recheck")
+            f"results.json last written at revision {revision} (each row records its own `git_revision`); "
+            "machine in results.json. What each run shows, and the "
+            "models checked offline: NOTES.md.\n\n" + repeat_summary(rows, latest_revision(rows, "after"))
+            + repeat_summary(rows, latest_revision(rows, "recheck"), "recheck")
             + "## Every run\n\n" + markdown_table(table, cols, heads))
 
 
