@@ -82,6 +82,22 @@ def test_the_global_estimate_confirms_an_exact_model_and_catches_a_bend(tmp_path
     assert code == EXIT_INCONSISTENT and names[0] in message and "--no-second-estimate" in message
 
 
+def test_a_view_the_estimate_misplaces_grossly_is_its_failure_not_a_bend():
+    model, estimate = synthetic_model(), synthetic_model()
+    ids = sorted(estimate.reg_image_ids())
+    wrong = move_view(estimate, ids[3], shift=(0.5, 0.0, 0.0), turn_deg=30.0)
+    options = second_estimate.SecondEstimateOptions()
+    report = second_estimate.compare(model, estimate, options)
+    assert report["verdict"] == "agree" and report["misplaced_by_estimate"] == [wrong]
+    assert report["largest_rotation_deg"] < 1e-4  # the rest, fitted without it, agree exactly
+    assert wrong in second_estimate.summary(report)
+    for i in ids[4:6]:
+        move_view(estimate, i, turn_deg=30.0)
+    report = second_estimate.compare(model, estimate, options)  # 3 of 12 misplaced: over 10%
+    assert report["verdict"] == "none" and len(report["misplaced_by_estimate"]) >= 2  # it stops past 10%
+    assert "of 12 views: no verdict" in second_estimate.summary(report)
+
+
 def test_pairs_the_model_does_not_share_points_across_are_left_out(tmp_path):
     model, database = _with_database(tmp_path)
     ids = sorted(model.reg_image_ids())
@@ -95,6 +111,10 @@ def test_pairs_the_model_does_not_share_points_across_are_left_out(tmp_path):
         assert len(db.read_two_view_geometries()[0]) == 0
     finally:
         db.close()
+    left_out = model.images[ids[0]].name
+    kept, removed = second_estimate.confirmed_pairs_database(database, tmp_path / "kept.db", model, 1,
+                                                             frozenset({left_out}))
+    assert (kept, removed) == (55, 11)  # the 11 pairs of the view left out
 
 
 def test_no_verdict_without_a_second_estimate():

@@ -605,8 +605,7 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         if best is not None and options.second_estimate and options.mapper == "incremental":
             with _timed(timings, "second_estimate"):
                 report["second_estimate"] = check_second_estimate(
-                    database, root, best, distorted / "second_estimate", options.second_estimate_options,
-                    options.num_threads, options.seed)
+                    database, root, best, distorted / "second_estimate", options.second_estimate_options, options.seed)
         report.update(_registration(models, best, names))
         refused = best is None or report["registered_fraction"] < options.min_registered_fraction
         if refused or report["unregistered_images"]:
