@@ -68,6 +68,9 @@ def test_the_global_estimate_confirms_an_exact_model_and_catches_a_bend(tmp_path
     assert report["largest_centre_rel"] < 1e-4 and report["largest_rotation_deg"] < 0.01
     assert not (tmp_path / "second").exists()  # nothing kept when the two agree
     assert "agrees on 12 views" in second_estimate.summary(report)
+    assert "left out of it" not in second_estimate.summary(report)
+    report["estimated_again_without"] = ["a.png", "b.png"]
+    assert "2 views it misplaced at first were left out of it (a.png, b.png)" in second_estimate.summary(report)
 
     names = _bend(model, 4.0)
     report = second_estimate.check(database, tmp_path, model, tmp_path / "second")

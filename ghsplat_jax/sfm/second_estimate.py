@@ -45,8 +45,8 @@ class SecondEstimateOptions:
     # A view this many times beyond the bounds is the second estimate's failure, not a bend: the
     # leave-one-out cross-check confirmed the model's pose of it (the global mapper put one or two
     # views of correct row-segment maps 16-18% of the extent and 32-35 degrees off). Such views are
-    # left out of the alignment and listed as "misplaced_by_estimate"; when more than max_misplaced
-    # of the views are, the estimate gives no verdict.
+    # left out of the alignment and listed as "misplaced_by_estimate" (check: and out of a second
+    # estimate); when more than max_misplaced of the views are, the estimate gives no verdict.
     gross_factor: float = 5.0
     max_misplaced: float = 0.1
     min_shared_points: int = 15  # a pair is given to the global mapper when it shares this many points
@@ -207,8 +207,9 @@ def check(database: Path, image_root: Path, reconstruction, work: Path,
     estimate, pairs = global_estimate(database, image_root, reconstruction, work, options, 1, seed)
     report = compare(reconstruction, estimate, options, pairs)
     misplaced = frozenset(report.get("misplaced_by_estimate", ()))
-    if misplaced and report["verdict"] != "none":
-        # Its misplaced views' pairs also pull their neighbours: estimate again without them.
+    if misplaced and report["num_common"] - len(misplaced) >= options.min_common_views:
+        # Its misplaced views' pairs also pull their neighbours: estimate again without them (a
+        # block it misplaced as a whole, too many to judge the rest by, is then left out of it).
         estimate, pairs = global_estimate(database, image_root, reconstruction, work, options, 1, seed, misplaced)
         report = compare(reconstruction, estimate, options, pairs) | {"estimated_again_without": sorted(misplaced)}
     if report["verdict"] != "disagree":
@@ -228,11 +229,14 @@ def summary(report: dict) -> str:
                 "no verdict")
     worst = report["disagree"][:6]
     misplaced = report.get("misplaced_by_estimate") or []
+    again = report.get("estimated_again_without") or []
     if not worst:
         return (f"the global mapper's second estimate agrees on {report['num_common'] - len(misplaced)} views "
                 f"(largest differences {100 * report['largest_centre_rel']:.2f}% of the extent, "
                 f"{report['largest_rotation_deg']:.2f} degrees)"
-                + (f"; it misplaced {', '.join(misplaced)} (confirmed by the cross-check)" if misplaced else ""))
+                + (f"; it misplaced {', '.join(misplaced)} (confirmed by the cross-check)" if misplaced else "")
+                + (f"; {len(again)} views it misplaced at first were left out of it ({', '.join(again[:6])}"
+                   f"{', ...' if len(again) > 6 else ''})" if again else ""))
     shown = ", ".join(f"{v['name']} ({100 * v['centre_rel']:.2f}%, {v['rotation_deg']:.2f} deg)" for v in worst)
     return (f"{len(report['disagree'])} of {report['num_common']} views lie elsewhere in the global mapper's "
             f"second estimate, beyond {100 * report['max_centre_rel']:g}% of the extent or "
