@@ -101,6 +101,14 @@ def test_a_view_the_estimate_misplaces_grossly_is_its_failure_not_a_bend():
     assert "of 12 views: no verdict" in second_estimate.summary(report)
 
 
+def test_a_lone_view_beyond_the_bounds_is_not_a_bend():
+    model, estimate = synthetic_model(), synthetic_model()
+    lone = move_view(estimate, sorted(estimate.reg_image_ids())[5], turn_deg=2.0)
+    report = second_estimate.compare(model, estimate, second_estimate.SecondEstimateOptions())
+    assert report["verdict"] == "agree" and [v["name"] for v in report["disagree"]] == [lone]
+    assert f"one view alone lies beyond the bounds, {lone}" in second_estimate.summary(report)
+
+
 def test_pairs_the_model_does_not_share_points_across_are_left_out(tmp_path):
     model, database = _with_database(tmp_path)
     ids = sorted(model.reg_image_ids())
