@@ -168,10 +168,8 @@ def recheck(case: str, work: Path, earlier: dict) -> dict:
     database, scratch = run_dir / "distorted" / "database.db", run_dir / "distorted" / "second_estimate"
     pycolmap.logging.minloglevel = 2
     model = pycolmap.Reconstruction(str(run_dir / "sparse" / "0"))
-    options = second_estimate.SecondEstimateOptions()
     start = time.perf_counter()
-    estimate, pairs = second_estimate.global_estimate(database, photos / "images", model, scratch, options)
-    second = second_estimate.compare(model, estimate, options, pairs)
+    second, estimate = second_estimate.estimate_and_compare(database, photos / "images", model, scratch)
     seconds = time.perf_counter() - start
     every_pair = map_images(database, photos / "images", scratch / "every_pair", SfmOptions(mapper="global"))
     every_pair = max(every_pair.values(), key=lambda m: m.num_reg_images(), default=None)

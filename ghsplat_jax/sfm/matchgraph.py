@@ -58,6 +58,30 @@ def read_match_graph(database: Path, names: list[str], min_inliers: int = 15) ->
                       [images[n].camera_id for n in present], keypoints, pairs)
 
 
+def copy_keeping_pairs(source: Path, target: Path, wanted: set[tuple[int, int]]) -> tuple[int, int]:
+    """Copy database `source` to `target` without the verified pairs outside `wanted` (image ids,
+    smaller first); (pairs kept, pairs removed). Features and raw matches stay."""
+    import pycolmap
+
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{target}{suffix}").unlink(missing_ok=True)
+    shutil.copyfile(source, target)
+    db = pycolmap.Database.open(str(target))
+    kept = removed = 0
+    try:
+        pair_ids, _ = db.read_two_view_geometries()
+        for pair_id in pair_ids:
+            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+            if (min(id1, id2), max(id1, id2)) in wanted:
+                kept += 1
+            else:
+                db.delete_two_view_geometry(id1, id2)
+                removed += 1
+    finally:
+        db.close()
+    return kept, removed
+
+
 def keep_pairs(source: Path, target: Path, graph: MatchGraph, keep: set[tuple[int, int]],
                narrowed: dict[tuple[int, int], np.ndarray] | None = None) -> int:
     """Copy database `source` to `target` without the verified pairs outside `keep`; returns
@@ -66,26 +90,18 @@ def keep_pairs(source: Path, target: Path, graph: MatchGraph, keep: set[tuple[in
     inlier matches, so the mapper sees only the matches kept there."""
     import pycolmap
 
-    for suffix in ("", "-wal", "-shm"):
-        Path(f"{target}{suffix}").unlink(missing_ok=True)
-    shutil.copyfile(source, target)
-    db = pycolmap.Database.open(str(target))
-    removed = 0
-    try:
-        pair_ids, _ = db.read_two_view_geometries()
-        wanted = {tuple(sorted((graph.image_ids[i], graph.image_ids[j]))) for i, j in keep}
-        for pair_id in pair_ids:
-            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-            if tuple(sorted((id1, id2))) not in wanted:
-                db.delete_two_view_geometry(id1, id2)
-                removed += 1
-        for (i, j), matches in (narrowed or {}).items():
-            # read and written in capture order (i, j): pycolmap swaps the stored pair as needed
-            geometry = db.read_two_view_geometry(graph.image_ids[i], graph.image_ids[j])
-            geometry.inlier_matches = np.ascontiguousarray(matches, np.uint32)
-            db.update_two_view_geometry(graph.image_ids[i], graph.image_ids[j], geometry)
-    finally:
-        db.close()
+    wanted = {tuple(sorted((graph.image_ids[i], graph.image_ids[j]))) for i, j in keep}
+    _, removed = copy_keeping_pairs(source, target, wanted)
+    if narrowed:
+        db = pycolmap.Database.open(str(target))
+        try:
+            for (i, j), matches in narrowed.items():
+                # read and written in capture order (i, j): pycolmap swaps the stored pair as needed
+                geometry = db.read_two_view_geometry(graph.image_ids[i], graph.image_ids[j])
+                geometry.inlier_matches = np.ascontiguousarray(matches, np.uint32)
+                db.update_two_view_geometry(graph.image_ids[i], graph.image_ids[j], geometry)
+        finally:
+            db.close()
     return removed
 
 

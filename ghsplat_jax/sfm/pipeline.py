@@ -40,7 +40,7 @@ from ghsplat_jax.sfm.matchgraph import (
 )
 from ghsplat_jax.sfm.report import failure_advice, match_graph_stats, reconstruction_stats
 from ghsplat_jax.sfm.second_estimate import ADVICE as SECOND_ESTIMATE_ADVICE
-from ghsplat_jax.sfm.second_estimate import SecondEstimateOptions
+from ghsplat_jax.sfm.second_estimate import SecondEstimateOptions, map_globally
 from ghsplat_jax.sfm.second_estimate import check as check_second_estimate
 
 MATCHERS = ("exhaustive", "sequential", "spatial")
@@ -288,12 +288,7 @@ def map_images(database: Path, root: Path, models_dir: Path, options: SfmOptions
             f"--mapper global needs pycolmap >= 3.12 (GLOMAP built in); this is pycolmap "
             f"{pycolmap.__version__}: use --mapper incremental"
         )
-    pipeline = pycolmap.GlobalPipelineOptions()
-    pipeline.num_threads = options.num_threads
-    pipeline.random_seed = options.seed
-    pipeline.mapper.global_positioning.use_gpu = False
-    pipeline.mapper.bundle_adjustment.ceres.use_gpu = False
-    return pycolmap.global_mapping(database, root, models_dir, options=pipeline)
+    return map_globally(database, root, models_dir, options.num_threads, options.seed)
 
 
 def cameras_and_points(reconstruction) -> tuple[list[str], np.ndarray, np.ndarray]:

@@ -31,6 +31,7 @@ import numpy as np
 
 from ghsplat_jax.sfm.crosscheck import model_scale, rotation_angle_deg
 from ghsplat_jax.sfm.evaluate import model_w2c, umeyama
+from ghsplat_jax.sfm.matchgraph import copy_keeping_pairs
 
 
 @dataclasses.dataclass
@@ -71,29 +72,10 @@ def confirmed_pairs_database(database: Path, target: Path, reconstruction, min_s
     """Copy `database` to `target` keeping only the verified pairs of registered views that share
     at least `min_shared_points` of the model's points, and none of the views named in
     `leave_out`; (pairs kept, pairs removed)."""
-    import pycolmap
-
-    shared = shared_point_counts(reconstruction)
-    for image_id in reconstruction.reg_image_ids():
-        if reconstruction.images[image_id].name in leave_out:
-            shared = Counter({pair: n for pair, n in shared.items() if image_id not in pair})
-    for suffix in ("", "-wal", "-shm"):
-        Path(f"{target}{suffix}").unlink(missing_ok=True)
-    shutil.copyfile(database, target)
-    db = pycolmap.Database.open(str(target))
-    kept = removed = 0
-    try:
-        pair_ids, _ = db.read_two_view_geometries()
-        for pair_id in pair_ids:
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            if shared.get((min(a, b), max(a, b)), 0) >= min_shared_points:
-                kept += 1
-            else:
-                db.delete_two_view_geometry(a, b)
-                removed += 1
-    finally:
-        db.close()
-    return kept, removed
+    left_out = {i for i in reconstruction.reg_image_ids() if reconstruction.images[i].name in leave_out}
+    wanted = {pair for pair, n in shared_point_counts(reconstruction).items()
+              if n >= min_shared_points and not left_out.intersection(pair)}
+    return copy_keeping_pairs(database, target, wanted)
 
 
 def mean_rotation(rotations: np.ndarray) -> np.ndarray:
@@ -123,26 +105,31 @@ def view_deviations(model: dict[str, np.ndarray], estimate: dict[str, np.ndarray
     return {n: (float(c), float(r)) for n, c, r in zip(names, centre_dev, rotation_dev, strict=True)}
 
 
-def global_estimate(database: Path, image_root: Path, reconstruction, work: Path,
-                    options: SecondEstimateOptions, num_threads: int = 1, seed: int = 0,
-                    leave_out: frozenset[str] = frozenset()):
-    """(the global mapper's largest model from the pairs `reconstruction` confirms, without the
-    views in `leave_out`, or None; {"pairs_kept", "pairs_removed"}); its database and models are
-    written under `work`."""
+def map_globally(database: Path, image_root: Path, models_dir: Path, num_threads: int, seed: int) -> dict:
+    """pycolmap's global mapper (GLOMAP) on `database`, on the CPU: {index: Reconstruction}."""
     import pycolmap
 
-    shutil.rmtree(work, ignore_errors=True)
-    (work / "models").mkdir(parents=True)
-    kept, removed = confirmed_pairs_database(database, work / "database.db", reconstruction,
-                                             options.min_shared_points, leave_out)
     pipeline = pycolmap.GlobalPipelineOptions()
     pipeline.num_threads = num_threads
     pipeline.random_seed = seed
     pipeline.mapper.global_positioning.use_gpu = False
     pipeline.mapper.bundle_adjustment.ceres.use_gpu = False
     pycolmap.set_random_seed(seed)
+    return pycolmap.global_mapping(database, image_root, models_dir, options=pipeline)
+
+
+def global_estimate(database: Path, image_root: Path, reconstruction, work: Path,
+                    options: SecondEstimateOptions, num_threads: int = 1, seed: int = 0,
+                    leave_out: frozenset[str] = frozenset()):
+    """(the global mapper's largest model from the pairs `reconstruction` confirms, without the
+    views in `leave_out`, or None; {"pairs_kept", "pairs_removed"}); its database and models are
+    written under `work`."""
+    shutil.rmtree(work, ignore_errors=True)
+    (work / "models").mkdir(parents=True)
+    kept, removed = confirmed_pairs_database(database, work / "database.db", reconstruction,
+                                             options.min_shared_points, leave_out)
     try:
-        models = pycolmap.global_mapping(work / "database.db", image_root, work / "models", options=pipeline)
+        models = map_globally(work / "database.db", image_root, work / "models", num_threads, seed)
     except (RuntimeError, ValueError):  # no usable pair left: no second estimate, no verdict
         models = {}
     best = max(models.values(), key=lambda m: m.num_reg_images(), default=None)
@@ -200,22 +187,28 @@ def robust_deviations(model: dict[str, np.ndarray], estimate: dict[str, np.ndarr
         misplaced |= {worst}
 
 
-def check(database: Path, image_root: Path, reconstruction, work: Path,
-          options: SecondEstimateOptions = SecondEstimateOptions(), seed: int = 0) -> dict:
-    """global_estimate, then compare; the work folder is kept only when the two disagree (for
-    inspection: work/models/0 is the second estimate). One thread, so that the estimate is the same
-    from run to run. Views the estimate misplaced are left out of a second estimate, since their
-    pairs pull their neighbours too (on a correct row-segment map, two views misplaced 16-18% of
-    the extent left their neighbour 1.0% and 2.0 degrees off; without them it was within 0.55% and
-    1.16 degrees)."""
+def estimate_and_compare(database: Path, image_root: Path, reconstruction, work: Path,
+                         options: SecondEstimateOptions = SecondEstimateOptions(), seed: int = 0):
+    """(compare's report, the second estimate or None): global_estimate on one thread, so that
+    the estimate is the same from run to run, and again without the views it misplaced, since
+    their pairs pull their neighbours too (on a correct row-segment map, two views misplaced
+    16-18% of the extent left their neighbour 1.0% and 2.0 degrees off; without them it was within
+    0.55% and 1.16 degrees)."""
     estimate, pairs = global_estimate(database, image_root, reconstruction, work, options, 1, seed)
     report = compare(reconstruction, estimate, options, pairs)
     misplaced = frozenset(report.get("misplaced_by_estimate", ()))
     if misplaced and report["num_common"] - len(misplaced) >= options.min_common_views:
-        # Its misplaced views' pairs also pull their neighbours: estimate again without them (a
-        # block it misplaced as a whole, too many to judge the rest by, is then left out of it).
+        # (a block it misplaced as a whole, too many to judge the rest by, is then left out of it)
         estimate, pairs = global_estimate(database, image_root, reconstruction, work, options, 1, seed, misplaced)
         report = compare(reconstruction, estimate, options, pairs) | {"estimated_again_without": sorted(misplaced)}
+    return report, estimate
+
+
+def check(database: Path, image_root: Path, reconstruction, work: Path,
+          options: SecondEstimateOptions = SecondEstimateOptions(), seed: int = 0) -> dict:
+    """estimate_and_compare's report; the work folder is kept only when the two disagree (for
+    inspection: work/models/0 is the second estimate)."""
+    report, _ = estimate_and_compare(database, image_root, reconstruction, work, options, seed)
     if report["verdict"] != "disagree":
         shutil.rmtree(work, ignore_errors=True)
     else:
