@@ -323,21 +323,28 @@ def surfels_cell(r: dict) -> str:
     return fmt(r["num_gaussians"], ",") + (f" (of {before:,})" if before else "")
 
 
-def compaction_lines(rows: list[dict]) -> list[str]:
-    """The README's table of finished models compacted afterwards (benchmarks/analysis/compaction.py)."""
+def compaction_lines(rows: list[dict], runs: list[dict]) -> list[str]:
+    """The README's table of finished models compacted afterwards (benchmarks/analysis/compaction.py).
+    A run folder trained again since holds another model than the one compacted: the last column
+    says so, so that the row is not read as the compaction of the model the other tables score."""
     losses = sorted({c["max_loss_db"] for r in rows for c in r["compacted"]})
+    now = {f"{r['scene']}/{r['variant']}": r for r in runs}
     lines = ["", "## Compaction of finished models", "",
              "Each model compacted afterwards (`benchmarks/analysis/compaction.py`): the surfels of least blending "
              "weight over the training views removed, as many as cost at most the given validation PSNR (the "
              "run's own validation views); the test views score it. Cells: surfels kept (share), test PSNR change "
-             "(dB).", "",
-             "| run | surfels | test PSNR | " + " | ".join(f"max {x:g} dB" for x in losses) + " |",
-             "|---|---|---|" + "---|" * len(losses)]
+             "(dB). The recipe has compacted itself at its end since these measurements.", "",
+             "| run | surfels | test PSNR | " + " | ".join(f"max {x:g} dB" for x in losses) + " | the folder now |",
+             "|---|---|---|" + "---|" * len(losses) + "---|"]
     for r in rows:
         by = {c["max_loss_db"]: c for c in r["compacted"]}
         cells = [f"{by[x]['after']:,} ({by[x]['after'] / r['surfels']:.0%}), {by[x]['test_psnr'] - r['test_psnr']:+.3f}"
                  if x in by else "-" for x in losses]
-        lines.append(f"| {r['run']} | {r['surfels']:,} | {r['test_psnr']:.2f} | " + " | ".join(cells) + " |")
+        current = now.get("/".join(Path(r["run"]).parts[-2:]))
+        folder = ("gone" if current is None else "this model" if current["num_gaussians"] == r["surfels"]
+                  else f"trained again since ({fmt(current['num_gaussians'], ',')} surfels)")
+        lines.append(f"| {r['run']} | {r['surfels']:,} | {r['test_psnr']:.2f} | " + " | ".join(cells)
+                     + f" | {folder} |")
     return lines
 
 
@@ -417,7 +424,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                      f"{'-' if not load else ', '.join(f'{x:.1f}' for x in load)} | "
                      f"{(r.get('code_revision') or '-')[:10]} | {r['stop_reason'] or '-'} |")
     if compaction:
-        lines += compaction_lines(compaction)
+        lines += compaction_lines(compaction, runs)
     if unfinished:
         lines += ["", "## Interrupted runs (not the recipe's result: no stop, no evaluation)", "",
                   "| scene | variant | last scored step | test PSNR then | surfels then | train s then |",

@@ -59,9 +59,10 @@ def compact_run(run: Path, losses: list[float]) -> dict:
     def test_psnr(s) -> float:  # as metrics.json's test PSNR (the render clipped), from an exact pair buffer
         return measure(s.params, s.active, capacity_for_views(s.active_surfels(), cameras, config.raster))["psnr"]
 
-    row = {"run": str(run), "surfels": surfels.num, "test_psnr": test_psnr(state),
-           "weights_seconds": round(weight_s, 2), "code_revision": code_revision(), "compacted": []}
     metrics = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
+    row = {"run": str(run), "surfels": surfels.num, "test_psnr": test_psnr(state),
+           "weights_seconds": round(weight_s, 2), "code_revision": code_revision(),
+           "run_code_revision": metrics.get("code_revision"), "compacted": []}
     if "compaction" in metrics:
         row["self_compacted"] = metrics["compaction"]
         return row

@@ -153,11 +153,15 @@ def _truth_error(reconstruction, truth: Path) -> list[float] | None:
     return [round(100 * acc["centre_error_max_rel"], 3), round(acc["rotation_error_max_deg"], 3)]
 
 
-def recheck(case: str, work: Path, earlier: dict) -> dict:
+def recheck(case: str, work: Path) -> dict:
     """The second estimate applied to the `after` model an earlier run left in WORK/case (its
-    database and its aligned model: the same views and tracks), as a results row: the earlier
-    row's status and errors, the verdict, the status the current checks would give, and how far
-    the second estimate, and the global mapper given every verified pair, lie from the truth."""
+    database and its aligned model: the same views and tracks), as a results row: that map's own
+    status (its sfm_report.json) and errors against the truth, the verdict, the status the current
+    checks would give, and how far the second estimate, and the global mapper given every verified
+    pair, lie from the truth. Everything about the map is read from its folder, never from a
+    results row, which may describe a later map of the same case."""
+    import json
+
     import pycolmap
 
     from ghsplat_jax.sfm import second_estimate
@@ -166,19 +170,24 @@ def recheck(case: str, work: Path, earlier: dict) -> dict:
     run_dir = work / case / "sfm_after"
     photos = work / _base(case) / "photos"
     database, scratch = run_dir / "distorted" / "database.db", run_dir / "distorted" / "second_estimate"
+    mapped = json.loads((run_dir / "sfm_report.json").read_text())
+    truth = photos / "sparse" / "0"
     pycolmap.logging.minloglevel = 2
     model = pycolmap.Reconstruction(str(run_dir / "sparse" / "0"))
+    centre_error, rotation_error = _truth_error(model, truth)
     start = time.perf_counter()
     second, estimate = second_estimate.estimate_and_compare(database, photos / "images", model, scratch)
     seconds = time.perf_counter() - start
     every_pair = map_images(database, photos / "images", scratch / "every_pair", SfmOptions(mapper="global"))
     every_pair = max(every_pair.values(), key=lambda m: m.num_reg_images(), default=None)
-    truth = photos / "sparse" / "0"
-    row = {**{k: earlier[k] for k in ("case", "registered", "views", "centre_error_max_pct",
-                                      "rotation_error_max_deg", "cross_check_dropped")},
-           "variant": "recheck", "mapped_status": earlier["status"], "mapped_revision": earlier["git_revision"],
-           "status": "inconsistent" if earlier["status"] == "ok" and second["verdict"] == "disagree"
-           else earlier["status"], **second_estimate_fields(second),
+    # maps written before sfm_report.json recorded the code revision have it "unrecorded"
+    row = {"case": case, "variant": "recheck", "registered": mapped.get("num_registered"),
+           "views": mapped["num_images"], "centre_error_max_pct": centre_error,
+           "rotation_error_max_deg": rotation_error,
+           "cross_check_dropped": (mapped.get("cross_check") or {}).get("dropped", []),
+           "mapped_status": mapped["status"], "mapped_revision": mapped["versions"].get("ghsplat_jax", "unrecorded"),
+           "status": "inconsistent" if mapped["status"] == "ok" and second["verdict"] == "disagree"
+           else mapped["status"], **second_estimate_fields(second),
            "second_estimate_true_error": _truth_error(estimate, truth),
            "global_every_pair_true_error": _truth_error(every_pair, truth),
            "second_estimate_s": round(seconds, 3)}
@@ -347,10 +356,10 @@ def main(argv=None) -> int:
     rows = json.loads(old.read_text())["rows"] if old.is_file() else []
     if args.recheck:
         for case in args.cases:
-            earlier = next((r for r in rows if (r["case"], r["variant"]) == (case, "after")), None)
-            if earlier is None or not (args.work / case / "sfm_after" / "sparse" / "0").is_dir():
-                raise SystemExit(f"{case}: no `after` row in results.json or no model in {args.work / case}")
-            row = recheck(case, args.work, earlier) | {"git_revision": code_revision()}
+            run_dir = args.work / case / "sfm_after"
+            if not (run_dir / "sparse" / "0").is_dir() or not (run_dir / "sfm_report.json").is_file():
+                raise SystemExit(f"{case}: no `after` model with its sfm_report.json in {run_dir}")
+            row = recheck(case, args.work) | {"git_revision": code_revision()}
             rows = [r for r in rows if (r["case"], r["variant"]) != (case, "recheck")] + [row]
             print({k: row[k] for k in ("case", "mapped_status", "status", "second_estimate", "second_estimate_largest",
                                        "centre_error_max_pct", "rotation_error_max_deg")}, flush=True)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.io_utils import atomic_path, replace_path, write_json
+from ghsplat_jax.io_utils import atomic_path, code_revision, replace_path, write_json
 from ghsplat_jax.sfm import crosscheck, diagnose, folds
 from ghsplat_jax.sfm import disambiguate as dis
 from ghsplat_jax.sfm import frames as frames_mod
@@ -570,7 +570,8 @@ def run_sfm(images: Path, out: Path, options: SfmOptions = SfmOptions()) -> dict
         "input": str(Path(images).resolve()),
         "image_root": str(root.resolve()),
         "options": _options_json(options),
-        "versions": {"pycolmap": pycolmap.__version__, "colmap": pycolmap.COLMAP_version},
+        "versions": {"pycolmap": pycolmap.__version__, "colmap": pycolmap.COLMAP_version,
+                     "ghsplat_jax": code_revision()},
         "num_images": len(names),
     }
     if frame_info:
