@@ -48,6 +48,7 @@ def load(results: Path = RESULTS) -> dict:
     p = paper.groups()
     return {
         "results": read(folder / "results.json"),
+        "real": read(real) if (real := results / "auto_recipe" / "real" / "results.json").is_file() else None,
         "segments": read(folder / "segments.json"),
         "notes": read(folder / "notes.json"),
         "pareto": read(folder / "pareto.json"),
@@ -131,28 +132,46 @@ def mean_sd(values: list[float], spec: str) -> str:
     return format(s["mean"], spec) if s["n"] == 1 else f"{format(s['mean'], spec)} ± {format(s['std'], spec)}"
 
 
+def seed_table(rows: list[dict], first: str) -> list[str]:
+    """One row per scene of the auto recipe's seeds: mean ± sd of the test metrics over them."""
+    body = []
+    for s in sorted({r["scene"] for r in rows}):
+        rs = [r for r in rows if r["scene"] == s]
+        col = lambda key: [r.get(key) for r in rs]  # noqa: E731
+        body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
+                     mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
+                     mean_sd(col("num_gaussians"), ",.0f"), mean_sd(col("train_seconds"), ",.0f")])
+    return table([first, "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
+                  "Gaussians", "training s"], body)
+
+
 def auto_section(rows: list[dict]) -> list[str]:
     """The auto recipe's rows, per segment: mean ± sd over its seeds of the test metrics."""
     auto = [r for r in rows if is_seed(r.get("variant", "")) and r.get("psnr") is not None]
     if not auto:
         return []
-    out = ["## The auto recipe (self-sizing, self-stopping)", "",
-           "`recipe = \"auto\"` on the same segments at the same size, one row per segment over the seeds that "
-           "finished (mean ± sample sd); LPIPS (VGG), median depth error and mean normal error on the test views, "
-           "the geometry against the procedural scene's ray-cast depth and normals (the model carried into the "
-           "scene's frame by its SfM's similarity onto the exact cameras, so the SfM's pose error is in them). "
-           "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md).",
-           ""]
-    body = []
-    for s in sorted({r["scene"] for r in auto}):
-        rs = [r for r in auto if r["scene"] == s]
-        col = lambda key: [r.get(key) for r in rs]  # noqa: E731
-        body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
-                     mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
-                     mean_sd(col("num_gaussians"), ",.0f"), mean_sd(col("train_seconds"), ",.0f")])
-    out += table(["segment", "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
-                  "Gaussians", "training s"], body)
-    return out + [""]
+    return ["## The auto recipe (self-sizing, self-stopping)", "",
+            "`recipe = \"auto\"` on the same segments at the same size, one row per segment over the seeds that "
+            "finished (mean ± sample sd); LPIPS (VGG), median depth error and mean normal error on the test views, "
+            "the geometry against the procedural scene's ray-cast depth and normals (the model carried into the "
+            "scene's frame by its SfM's similarity onto the exact cameras, so the SfM's pose error is in them). "
+            "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md).",
+            ""] + seed_table(auto, "segment") + [""]
+
+
+def real_section(real: dict | None) -> list[str]:
+    """The auto recipe on real captures (benchmarks/results/auto_recipe/real/results.json), per scene."""
+    runs = [r for r in (real or {}).get("runs", []) if is_seed(r["variant"]) and r.get("psnr") is not None]
+    if not runs:
+        return []
+    machines = sorted({(r.get("machine") or {}).get("processor", "unrecorded") for r in runs})
+    return ["## Real captures (the auto recipe)", "",
+            "The same recipe, unchanged, on real photos (`experiments/auto_real.toml`): the shared fern and "
+            "lund_door, and a real plant fetched from a public repository with its provenance "
+            "(`benchmarks/data/fetch_capture.py`; posed by `ghsplat sfm`). Mean ± sample sd over the seeds that "
+            "finished; no geometric ground truth, so no depth or normal error. Every run records its machine and "
+            f"code revision ({', '.join(machines)}); per-run rows, curves and goals: "
+            "[../auto_recipe/real/README.md](../auto_recipe/real/README.md).", ""] + seed_table(runs, "capture") + [""]
 
 
 # ---------------------------------------------------------------- the README
@@ -446,6 +465,7 @@ def render(data: dict) -> str:
     out.append("")
 
     out += auto_section(rows)
+    out += real_section(data.get("real"))
 
     # -------- SfM
     ok = [s for s in seginfo.values() if s["status"] == "ok"]
