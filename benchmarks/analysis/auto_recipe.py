@@ -348,8 +348,17 @@ def compaction_lines(rows: list[dict], runs: list[dict]) -> list[str]:
     return lines
 
 
+def gallery_lines(gallery: dict) -> list[str]:
+    """The README's pointer to gallery.png (benchmarks/analysis/render_gallery.py's record)."""
+    views = "; ".join(f"{label}: " + ", ".join(f"{v['name']} {v['psnr']:.2f} dB" for v in run["views"])
+                      for label, run in gallery["runs"].items())
+    return ["", "## Test views beside their photos", "",
+            f"`gallery.png` (`benchmarks/analysis/render_gallery.py` at {gallery['code_revision'][:10]}): each test "
+            f"view's photo, the run's render and their difference (x3). {views}."]
+
+
 def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list[dict], ablated: list[dict],
-           curves: list[dict] = (), compaction: list[dict] = ()) -> str:
+           curves: list[dict] = (), compaction: list[dict] = (), gallery: dict | None = None) -> str:
     title = ("The auto recipe against the default and the compact variant" if any(s["compact"] for s in summary)
              else "The auto recipe")
     lines = [f"# {title}", "",
@@ -425,6 +434,8 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                      f"{(r.get('code_revision') or '-')[:10]} | {r['stop_reason'] or '-'} |")
     if compaction:
         lines += compaction_lines(compaction, runs)
+    if gallery:
+        lines += gallery_lines(gallery)
     if unfinished:
         lines += ["", "## Interrupted runs (not the recipe's result: no stop, no evaluation)", "",
                   "| scene | variant | last scored step | test PSNR then | surfels then | train s then |",
@@ -445,7 +456,7 @@ def readme_from_results(out: Path = RESULTS / "auto_recipe") -> str:
     """OUT/README.md's text rendered from the committed OUT/results.json (no run folders)."""
     res = json.loads((out / "results.json").read_text())
     return readme(res["summary"], res["runs"], res["report"], res.get("unfinished", []), res.get("ablations", []),
-                  res.get("reference_curves", []), res.get("compaction", []))
+                  res.get("reference_curves", []), res.get("compaction", []), res.get("gallery"))
 
 
 def check(out: Path = RESULTS / "auto_recipe", readme_path: Path | None = None) -> str:
@@ -488,11 +499,13 @@ def main(argv=None) -> int:
     ablated = ablations(runs)
     compacted = args.out / "compaction.json"  # benchmarks/analysis/compaction.py's records
     compaction = [r for r in json.loads(compacted.read_text())["runs"] if r["compacted"]] if compacted.is_file() else []
+    gallery_path = args.out / "gallery.json"  # benchmarks/analysis/render_gallery.py's record
+    gallery = json.loads(gallery_path.read_text()) if gallery_path.is_file() else None
     write_json(args.out / "results.json", {"report": record, "summary": summary, "runs": runs,
                                            "ablations": ablated, "unfinished": unfinished,
-                                           "reference_curves": curves, "compaction": compaction})
+                                           "reference_curves": curves, "compaction": compaction, "gallery": gallery})
     with atomic_write(args.out / "README.md", "w") as fh:
-        fh.write(readme(summary, runs, record, unfinished, ablated, curves, compaction))
+        fh.write(readme(summary, runs, record, unfinished, ablated, curves, compaction, gallery))
     print(f"wrote {args.out}/results.json, README.md and {len(scenes)} charts")
     return 0
 
