@@ -44,7 +44,24 @@ def test_plateau_rule_waits_for_stop_after_and_ignores_nan():
     s, a = rule.update(s, 200, float("nan"))
     assert a == "wait" and s["best_psnr"] == 20.0  # a NaN check is never the best
     s, a = rule.update(s, 1000, 19.0)
+    assert a == "wait" and s["waited"] == 0  # checks up to stop_after count towards no plateau
+    s, a = rule.update(s, 1100, 19.0)
     assert a == "stop" and s["annealed_at"] is None  # anneal = 1: stop at the first plateau
+
+
+def test_plateau_rule_counts_no_check_made_at_reduced_resolution():
+    """A real plant's run: validation flat over the last half-resolution checks (1500-2000), full
+    resolution from step 2000. The rule waits for a plateau of full-resolution checks."""
+    rule = PlateauRule(patience=3, min_gain=0.1, stop_after=2000, anneal=0.3)
+    s = rule.initial()
+    for step, psnr in [(1000, 28.0), (1250, 29.0), (1500, 29.8), (1750, 29.78), (2000, 29.79)]:
+        s, a = rule.update(s, step, psnr)
+    assert a == "wait" and s["annealed_at"] is None and s["lr_scale"] == 1.0
+    for step, psnr in [(2250, 29.7), (2500, 29.75)]:  # two flat full-resolution checks: not yet three
+        s, a = rule.update(s, step, psnr)
+    assert a == "wait" and s["annealed_at"] is None
+    s, a = rule.update(s, 2750, 29.8)
+    assert a == "anneal" and s["annealed_at"] == 2750
 
 
 def test_box_downscale_and_intrinsics_agree_on_where_a_point_lands():

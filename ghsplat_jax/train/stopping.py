@@ -19,7 +19,10 @@ class PlateauRule:
     """Args:
         patience: checks in a row without a gain of `min_gain` over the best before acting.
         min_gain: dB over the best validation PSNR that counts as progress.
-        stop_after: no anneal and no stop before this step.
+        stop_after: no anneal and no stop before this step, and the checks up to it do not
+            count towards a plateau (at reduced resolution the validation PSNR levels off at
+            what the resolution allows: a rule that counted those checks annealed a real
+            plant's run at the very step full resolution began).
         anneal: factor on the means learning rate at the first plateau (1: stop at the first).
     """
 
@@ -51,7 +54,10 @@ class PlateauRule:
         else:
             state["waited"] += 1
             action = "wait"
-        if not self.patience or state["waited"] < self.patience or step < self.stop_after:
+        if step <= self.stop_after:
+            state["waited"] = 0
+            return state, action
+        if not self.patience or state["waited"] < self.patience:
             return state, action
         if state["annealed_at"] is None and self.anneal < 1:
             state.update(annealed_at=step, waited=0, lr_scale=state["lr_scale"] * self.anneal)
