@@ -67,13 +67,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from ghsplat_jax.io_utils import code_revision, write_json
 
-    runs = {f"{run.parent.name}/{run.name}": run_views(run) for run in args.runs}
+    # Labelled by folder relative to the checkout (SCENE/VARIANT alone can name two runs).
+    folders = {(str(run.resolve().relative_to(ROOT)) if run.resolve().is_relative_to(ROOT) else str(run)): run
+               for run in args.runs}
+    runs = {label: run_views(run) for label, run in folders.items()}
     draw(runs, args.out)
     write_json(args.out.with_suffix(".json"), {
         "machine": machine_record(start_backend=False), "code_revision": code_revision(),
-        "runs": {label: {"folder": str(run.resolve().relative_to(ROOT)) if run.resolve().is_relative_to(ROOT)
-                         else str(run), "views": [{"name": v["name"], "psnr": v["psnr"]} for v in views]}
-                 for (label, views), run in zip(runs.items(), args.runs)}})
+        "runs": {label: {"folder": label, "views": [{"name": v["name"], "psnr": v["psnr"]} for v in views]}
+                 for label, views in runs.items()}})
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}")
     return 0
 

@@ -166,9 +166,9 @@ def real_section(real: dict | None) -> list[str]:
         return []
     machines = sorted({(r.get("machine") or {}).get("processor", "unrecorded") for r in runs})
     return ["## Real captures (the auto recipe)", "",
-            "The same recipe, unchanged, on real photos (`experiments/auto_real.toml`): the shared fern and "
-            "lund_door, and a real plant fetched from a public repository with its provenance "
-            "(`benchmarks/data/fetch_capture.py`; posed by `ghsplat sfm`). Mean ± sample sd over the seeds that "
+            "The same recipe, unchanged, on real photos (`experiments/auto_real.toml`: shared captures, and a real "
+            "plant fetched from a public repository with its provenance by `benchmarks/data/fetch_capture.py`, "
+            "posed by `ghsplat sfm`). One row per capture with a finished run; mean ± sample sd over the seeds that "
             "finished; no geometric ground truth, so no depth or normal error. Every run records its machine and "
             f"code revision ({', '.join(machines)}); per-run rows, curves and goals: "
             "[../auto_recipe/real/README.md](../auto_recipe/real/README.md).", ""] + seed_table(runs, "capture") + [""]
