@@ -204,6 +204,18 @@ def test_auto_recipe_is_a_table_under_the_other_settings():
         TrainConfig(stop_patience=3)
 
 
+def test_a_recipes_step_ceiling_does_not_scale_its_schedule(caplog):
+    # Experiment files set scale_schedule for the 2DGS default; an auto variant with a lower
+    # ceiling must keep the recipe's own schedule, not one shrunk to the ceiling.
+    cfg = TrainConfig(scale_schedule=True).replace(recipe="auto", steps=8000)
+    with caplog.at_level("WARNING", logger="ghsplat.train"):
+        done = cfg.resolved()
+    assert (done.densify_every, done.densify_from, done.res_until, done.lr_means_steps, done.normal_from) == (
+        100, RECIPES["auto"]["densify_from"], RECIPES["auto"]["res_until"], RECIPES["auto"]["lr_means_steps"], 7000)
+    assert not done.scale_schedule and "ceiling" in caplog.text
+    assert TrainConfig(scale_schedule=True, steps=8000).resolved().densify_every == 27  # no recipe: scaled
+
+
 @pytest.mark.parametrize("at_freeze", [False, True])
 def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_freeze):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
