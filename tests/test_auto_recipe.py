@@ -126,10 +126,11 @@ def test_level_gain_nets_out_the_time_trend_per_doubling():
     assert level_gain((1000, 2000, 20.0), (2000, 2000, 21.0), trend=0.0) == -math.inf  # no growth: nothing bought
 
 
-def _growth_decisions(checks, width=400, height=400):
-    """Feed (count, val_psnr, train_scale) checks, 250 steps apart, to the auto strategy's hook; a
-    level's growth ends (the hold begins) where a check's count reaches the level's target, as
-    `refine` ends it. Returns the counts it froze at and the last state."""
+def _growth_decisions(checks, width=400, height=400, early_until=0):
+    """Feed (count, val_psnr, train_scale) checks, 250 steps apart, to the auto strategy's hook (the
+    checks up to step `early_until` marked early, as the trainer marks them); a level's growth ends
+    (the hold begins) where a check's count reaches the level's target, as `refine` ends it.
+    Returns the counts it froze at and the last state."""
     from types import SimpleNamespace
 
     from ghsplat_jax.train.strategies import make_strategy
@@ -141,7 +142,8 @@ def _growth_decisions(checks, width=400, height=400):
         if target and count >= target and not int(sstate["holding"]) and int(sstate["growing"]):
             sstate = start_hold(sstate)
         state = SimpleNamespace(num_active=lambda count=count: count)
-        sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, {"psnr": psnr, "train_scale": scale})
+        val = {"psnr": psnr, "train_scale": scale, "early": step * 250 <= early_until}
+        sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, val)
         frozen += [info["growth_stopped"]] if "growth_stopped" in info else []
     return frozen, sstate
 
@@ -166,6 +168,16 @@ def test_growth_rule_judges_levels_net_of_the_time_trend():
     frozen, _ = _growth_decisions(FIRST_LEVEL + [(20000, 27.5, 1), (20000, 27.55, 1), (20000, 29.6, 1)],
                                   width=100, height=100)
     assert frozen == [20000]
+
+
+def test_early_checks_judge_no_level_even_at_full_resolution():
+    # Without a resolution schedule every check is at full resolution; those the stop rule does not
+    # count yet (the trainer marks them early) neither begin nor judge a level.
+    full = [(count, psnr, 1) for count, psnr, _ in FIRST_LEVEL]
+    _, sstate = _growth_decisions(full)
+    assert int(sstate["level_target"]) == 20000  # judged at the third check: the next level grows
+    frozen, sstate = _growth_decisions(full, early_until=1250)
+    assert frozen == [] and int(sstate["level_target"]) == 0 and not int(sstate["holding"])
 
 
 def test_a_level_grows_to_its_target_then_holds_in_its_pool_and_a_frozen_count_fits_its_pool():

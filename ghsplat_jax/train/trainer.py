@@ -407,7 +407,10 @@ class TrainingSession:
 
     def check(self, step: int) -> dict:
         """A validation check after `step` steps: the strategy's hook, then the stop rule."""
-        val = self.validate() | {"train_scale": factor_at(self.schedule, step - 1)}
+        # "early": a check the stop rule does not count (before stop_after or full resolution); the
+        # strategy's count rule does not judge by it either.
+        early = step <= self.rule.stop_after
+        val = self.validate() | {"train_scale": factor_at(self.schedule, step - 1), "early": early}
         self.sstate, info = self.strategy.on_validation(self.context(), self.state, self.sstate, step, val)
         self.stop_state, action = self.rule.update(self.stop_state, step, val["psnr"])
         if self.stop_state["best_step"] == step:  # also when the same check ends the run

@@ -9,7 +9,8 @@ error is; as a sampling weight, not a threshold, it does not depend on the image
 2DGS gradient threshold does).
 
 Growth stops by a rate-distortion rule read on the validation checks (views held out of
-training) at full resolution; at reduced resolution the count grows every round unjudged. A
+training) at full resolution and after the steps the stop rule does not count (`stop_after`);
+before them the count grows every round unjudged. A
 model's validation PSNR rises for two reasons, more surfels and more steps, and early in a run
 the steps dominate: a rule that credited the count with all of it grew fern to 258k surfels (and
 on) and row2_x1 to its ceiling. So the count grows in levels and holds between them: each level
@@ -199,8 +200,11 @@ class AutoStrategy(MCMCStrategy):
         return self.add_noise(ctx, state, it), sstate, info
 
     def on_validation(self, ctx, state, sstate, it, val):
-        if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1:
-            return sstate, {}  # at reduced resolution the held-out views cannot judge the count
+        if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1 or val.get("early", False):
+            # At reduced resolution the held-out views cannot judge the count, and early in a run the
+            # steps' gain swamps the count's: at full resolution from step 0 (no resolution schedule),
+            # row2_x1's first level was judged at step 2,000 and froze the count at 4,766 surfels.
+            return sstate, {}
         if not int(sstate["level_target"]) and not bool(sstate["holding"]):
             sstate = start_hold(sstate)  # full resolution: hold
         if not bool(sstate["holding"]):
