@@ -1,6 +1,7 @@
-"""The check of a dataset's cameras against its SfM points (data/tracks.py): exact poses agree,
-poses moved after the SfM are flagged with the views named, a large SfM residual of its own is
-not, and datasets it cannot read stay unjudged."""
+"""The checks of a dataset against its SfM points' tracks: cameras (data/tracks.py): exact poses
+agree, poses moved after the SfM are flagged with the views named, a large SfM residual of its
+own is not, and datasets it cannot read stay unjudged; exposure (data/exposure.py): photos
+brighter or darker than the rest where they see the same points are named, with their ratio."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 
 from ghsplat_jax.core.camera import Camera, intrinsics, look_at, project_points
 from ghsplat_jax.data import load_dataset
-from ghsplat_jax.data.images import write_image
+from ghsplat_jax.data.exposure import exposure_outliers, exposure_warning
+from ghsplat_jax.data.images import read_image, write_image
 from ghsplat_jax.data.perturb import perturb_poses
 from ghsplat_jax.data.tracks import POSE_DISAGREEMENT_DEG, pose_disagreement, track_agreement
 
@@ -77,3 +79,35 @@ def test_datasets_it_cannot_judge_stay_unjudged(tmp_path):
     cid, _, w, h, fx, fy, cx, cy = lines[-1].split()
     distorted.write_text("\n".join(lines[:-1] + [f"{cid} OPENCV {w} {h} {fx} {fy} {cx} {cy} 0.01 0 0 0"]) + "\n")
     assert track_agreement(ds) is None  # tracks in distorted pixels: not comparable with undistorted views
+
+
+def _paint_points(root, gains: dict[int, float], seed=0):
+    """Rewrite the model's photos: each point a 3x3 patch of its own grey level (the same in every
+    view) on a grey background, photo i exposed `gains[i]` times brighter in linear light."""
+    from ghsplat_jax.data.exposure import linear_luminance
+
+    ds = load_dataset(root, split="all")
+    albedo = np.random.default_rng(seed).uniform(0.1, 0.4, len(ds.points))  # linear light
+    for i, view in enumerate(ds.train):
+        xy, z = project_points(ds.points, view.camera.K, view.camera.world_to_cam)
+        linear = np.full((H, W), 0.05)
+        for (x, y), a in zip(np.floor(xy[z > 0]).astype(int), albedo[z > 0]):
+            linear[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2] = a
+        linear *= gains.get(i, 1.0)
+        srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+        pixels = np.repeat(np.round(255 * np.clip(srgb, 0, 1)), 3).reshape(H, W, 3)
+        write_image(view.image_path, pixels.astype(np.uint8))
+        assert abs(linear_luminance(read_image(view.image_path)[0]).mean() / linear.mean() - 1) < 0.05
+    return root
+
+
+def test_photos_exposed_unlike_the_rest_are_named_with_their_ratio(tmp_path):
+    even = load_dataset(_paint_points(_write_model(tmp_path / "even", points=120), {}), split="all")
+    assert exposure_outliers(even) == [] and exposure_warning(even, "scene") is None
+    odd = load_dataset(_paint_points(_write_model(tmp_path / "odd", points=120), {2: 1.5, 3: 1.4}), split="all")
+    found = exposure_outliers(odd)
+    assert [name for _, name, _ in found] == ["002.png", "003.png"]
+    assert [round(ratio, 1) for _, _, ratio in found] == [1.5, 1.4]
+    message = exposure_warning(odd, "scene")
+    assert message.startswith("scene: 2 photo(s) exposed unlike the rest") and "002.png (train) 1.4" in message
+    assert exposure_outliers(dataclasses.replace(odd, format="transforms")) is None  # no tracks: not told

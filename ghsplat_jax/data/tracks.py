@@ -49,18 +49,26 @@ class TrackAgreement:
         return self.median_deg > max(POSE_DISAGREEMENT_DEG, STORED_FACTOR * self.stored_deg)
 
 
-def track_agreement(dataset) -> TrackAgreement | None:
-    """The training views' agreement with the dataset's SfM points; None where it cannot be
-    told (not a COLMAP dataset, pycolmap missing, a distorted camera model, no tracks)."""
+def read_model(dataset):
+    """The pycolmap Reconstruction a COLMAP dataset was read from, or None where there is none
+    (another format, pycolmap missing, a model it cannot read): the checks on it are optional."""
     source = getattr(dataset, "source", None)
     if getattr(dataset, "format", None) != "colmap" or source is None:
         return None
     try:
         import pycolmap
 
-        recon = pycolmap.Reconstruction(str(source.parent))
+        return pycolmap.Reconstruction(str(source.parent))
     except Exception as exc:  # noqa: BLE001 (an optional check: no pycolmap, or a model it cannot read)
         log.debug("%s: no track check (%s)", source.parent, exc)
+        return None
+
+
+def track_agreement(dataset) -> TrackAgreement | None:
+    """The training views' agreement with the dataset's SfM points; None where it cannot be
+    told (not a COLMAP dataset, pycolmap missing, a distorted camera model, no tracks)."""
+    recon = read_model(dataset)
+    if recon is None:
         return None
     by_name = {im.name: im for im in recon.images.values()}
     rows = []

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ghsplat_jax.data.exposure import exposure_warning
 from ghsplat_jax.data.tracks import pose_disagreement
 from ghsplat_jax.host_memory import IN_RUN_MAP_SHARE, MAPS_CHECK_EVERY, release_compiled_programs, reuse_freed_memory
 from ghsplat_jax.io_utils import code_revision
@@ -178,12 +179,9 @@ def finite_points(points) -> int:
 def warn_about_inputs(config: TrainConfig, dataset, carved: int | None = None) -> list[str]:
     """Warn (and return the messages) where the inputs predict a poor model that training itself
     cannot notice: random initialisation for want of SfM points (`carved`: that many of them kept
-    inside the subject's silhouettes), too few training views, or cameras that disagree with the
-    SfM points they observed (data/tracks.py)."""
-    messages = []
-    disagree = pose_disagreement(dataset, config.data)
-    if disagree:
-        messages.append(disagree)
+    inside the subject's silhouettes), too few training views, cameras that disagree with the SfM
+    points they observed (data/tracks.py), or photos exposed unlike the rest (data/exposure.py)."""
+    messages = [m for m in (pose_disagreement(dataset, config.data), exposure_warning(dataset, config.data)) if m]
     points = finite_points(dataset.points)
     if needs_random_init(points, config):
         start = (f"{carved} random points inside the subject's silhouettes" if carved else
