@@ -128,9 +128,9 @@ def test_level_gain_nets_out_the_time_trend_per_doubling():
 
 def _growth_decisions(checks, width=400, height=400, early_until=0):
     """Feed (count, val_psnr, train_scale) checks, 250 steps apart, to the auto strategy's hook (the
-    checks up to step `early_until` marked early, as the trainer marks them); a level's growth ends
-    (the hold begins) where a check's count reaches the level's target, as `refine` ends it.
-    Returns the counts it froze at and the last state."""
+    checks at reduced resolution or up to step `early_until` marked early, as the trainer marks
+    them); a level's growth ends (the hold begins) where a check's count reaches the level's
+    target, as `refine` ends it. Returns the counts it froze at and the last state."""
     from types import SimpleNamespace
 
     from ghsplat_jax.train.strategies import make_strategy
@@ -142,7 +142,7 @@ def _growth_decisions(checks, width=400, height=400, early_until=0):
         if target and count >= target and not int(sstate["holding"]) and int(sstate["growing"]):
             sstate = start_hold(sstate)
         state = SimpleNamespace(num_active=lambda count=count: count)
-        val = {"psnr": psnr, "train_scale": scale, "early": step * 250 <= early_until}
+        val = {"psnr": psnr, "early": scale != 1 or step * 250 <= early_until}
         sstate, info = strategy.on_validation(ctx, state, sstate, step * 250, val)
         frozen += [info["growth_stopped"]] if "growth_stopped" in info else []
     return frozen, sstate

@@ -23,8 +23,7 @@ import math
 
 import numpy as np
 
-from ghsplat_jax.data.splits import subsample
-from ghsplat_jax.data.tracks import MAX_POINTS, PINHOLE_MODELS, read_model
+from ghsplat_jax.data.tracks import read_model, view_tracks
 
 MAX_RATIO = 1.3       # warn about a photo exposed more than this apart from the capture's median
 MIN_POINTS = 20       # shared points a photo needs for its exposure to be told
@@ -62,29 +61,18 @@ def observations(dataset, views) -> tuple[np.ndarray, np.ndarray, np.ndarray] | 
     """(view index, point id, log linear luminance) of the SfM points the views observed, sampled
     in each photo at the keypoint; only points two or more of the views saw. None without tracks."""
     recon = read_model(dataset)
-    if recon is None:
+    tracks = None if recon is None else view_tracks(recon, views)
+    if tracks is None:
         return None
-    by_name = {im.name: im for im in recon.images.values()}
     rows = []
-    for i, view in enumerate(views):
-        image = by_name.get(view.name)
-        if image is None:
-            continue
-        camera = recon.cameras[image.camera_id]
-        if camera.model.name not in PINHOLE_MODELS:
-            return None  # tracks of distorted models are in distorted pixels
-        observed = subsample([p for p in image.points2D if p.has_point3D()], MAX_POINTS)
-        if not observed:
-            continue
-        h, w = view.image.shape[:2]
-        xy = np.array([p.xy for p in observed]) * (w / camera.width)
-        col = np.clip(np.floor(xy[:, 0]).astype(int), 0, w - 1)
-        row = np.clip(np.floor(xy[:, 1]).astype(int), 0, h - 1)
-        rgb = view.image[row, col, :3]
+    for t in tracks:
+        h, w = t.view.image.shape[:2]
+        col = np.clip(np.floor(t.xy[:, 0]).astype(int), 0, w - 1)
+        row = np.clip(np.floor(t.xy[:, 1]).astype(int), 0, h - 1)
+        rgb = t.view.image[row, col, :3]
         lum = linear_luminance(rgb)
         keep = (lum > _DARK) & np.all(rgb < _CLIPPED, axis=1)
-        ids = np.array([p.point3D_id for p in observed])[keep]
-        rows.append((np.full(len(ids), i), ids, np.log(lum[keep])))
+        rows.append((np.full(int(keep.sum()), t.index), t.point_ids[keep], np.log(lum[keep])))
     if not rows:
         return None
     view_of, point_of, log_lum = (np.concatenate(c) for c in zip(*rows))

@@ -64,15 +64,23 @@ def read_model(dataset):
         return None
 
 
-def track_agreement(dataset) -> TrackAgreement | None:
-    """The training views' agreement with the dataset's SfM points; None where it cannot be
-    told (not a COLMAP dataset, pycolmap missing, a distorted camera model, no tracks)."""
-    recon = read_model(dataset)
-    if recon is None:
-        return None
+@dataclasses.dataclass(frozen=True)
+class ViewTrack:
+    """What one view observed in the SfM model: at most MAX_POINTS of its track entries."""
+
+    index: int              # the view's place in the list given to view_tracks
+    view: object            # the data.dataset.View
+    xy: np.ndarray          # (N,2) keypoints in the view's loaded pixels
+    point_ids: np.ndarray   # (N,) the points3D they observe
+    scale: float            # loaded pixels per model pixel
+
+
+def view_tracks(recon, views) -> list[ViewTrack] | None:
+    """The track entries of each of `views` the model holds (views it lacks, or with none, left
+    out); None where a camera is distorted (its tracks are in distorted pixels, the views not)."""
     by_name = {im.name: im for im in recon.images.values()}
-    rows = []
-    for view in subsample(list(dataset.train), MAX_VIEWS):
+    out = []
+    for i, view in enumerate(views):
         image = by_name.get(view.name)
         if image is None:
             continue
@@ -80,15 +88,28 @@ def track_agreement(dataset) -> TrackAgreement | None:
         if camera.model.name not in PINHOLE_MODELS:
             return None
         observed = subsample([p for p in image.points2D if p.has_point3D()], MAX_POINTS)
-        if not observed:
-            continue
-        scale = view.camera.width / camera.width
-        xy = np.array([p.xy for p in observed]) * scale
-        points = [recon.points3D[p.point3D_id] for p in observed]
+        if observed:
+            scale = view.camera.width / camera.width
+            out.append(ViewTrack(i, view, np.array([p.xy for p in observed]) * scale,
+                                 np.array([p.point3D_id for p in observed]), scale))
+    return out
+
+
+def track_agreement(dataset) -> TrackAgreement | None:
+    """The training views' agreement with the dataset's SfM points; None where it cannot be
+    told (not a COLMAP dataset, pycolmap missing, a distorted camera model, no tracks)."""
+    recon = read_model(dataset)
+    tracks = None if recon is None else view_tracks(recon, subsample(list(dataset.train), MAX_VIEWS))
+    if tracks is None:
+        return None
+    rows = []
+    for t in tracks:
+        view = t.view
+        points = [recon.points3D[int(i)] for i in t.point_ids]
         proj, z = project_points(np.array([p.xyz for p in points]), view.camera.K, view.camera.world_to_cam)
         focal = float(np.asarray(view.camera.K)[0, 0])
-        px = np.where(z > 0, np.linalg.norm(proj - xy, axis=1), np.inf)
-        stored = np.array([p.error for p in points]) * scale
+        px = np.where(z > 0, np.linalg.norm(proj - t.xy, axis=1), np.inf)
+        stored = np.array([p.error for p in points]) * t.scale
         rows.append((view.name, float(np.median(px)), float(np.median(stored)), focal))
     if not rows:
         return None

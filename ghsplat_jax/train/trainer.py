@@ -405,10 +405,9 @@ class TrainingSession:
 
     def check(self, step: int) -> dict:
         """A validation check after `step` steps: the strategy's hook, then the stop rule."""
-        # "early": a check the stop rule does not count (before stop_after or full resolution); the
-        # strategy's count rule does not judge by it either.
-        early = step <= self.rule.stop_after
-        val = self.validate() | {"train_scale": factor_at(self.schedule, step - 1), "early": early}
+        # "early": a check the stop rule does not count (up to stop_after or full resolution, whichever
+        # is later); the strategy's count rule does not judge by it either.
+        val = self.validate() | {"early": step <= self.rule.stop_after}
         self.sstate, info = self.strategy.on_validation(self.context(), self.state, self.sstate, step, val)
         self.stop_state, action = self.rule.update(self.stop_state, step, val["psnr"])
         if self.stop_state["best_step"] == step:  # also when the same check ends the run

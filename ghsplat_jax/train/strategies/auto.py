@@ -200,7 +200,7 @@ class AutoStrategy(MCMCStrategy):
         return self.add_noise(ctx, state, it), sstate, info
 
     def on_validation(self, ctx, state, sstate, it, val):
-        if not bool(sstate["growing"]) or val.get("train_scale", 1) != 1 or val.get("early", False):
+        if not bool(sstate["growing"]) or val.get("early", False):
             # At reduced resolution the held-out views cannot judge the count, and early in a run the
             # steps' gain swamps the count's: at full resolution from step 0 (no resolution schedule),
             # row2_x1's first level was judged at step 2,000 and froze the count at 4,766 surfels.
