@@ -31,6 +31,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-refine", action="store_true",
                    help="learn a pose correction per training view (pose_refine; rates: --set pose_lr_rot=..., "
                         "pose_lr_trans=..., pose_refine_from=...); writes OUT/pose_corrections.json")
+    p.add_argument("--exposure-compensation", action="store_true",
+                   help="learn a colour gain and offset per training view, for photos exposed unlike the rest "
+                        "(exposure_compensation; the model keeps the exposure they share); writes "
+                        "OUT/exposure_corrections.json")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any TrainConfig field, e.g. --set lambda_dist=100 (TOML value syntax)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz with OUT/config.toml")
@@ -76,6 +80,8 @@ def resolve_config(args):
         overrides["background"] = (1.0, 1.0, 1.0)
     if args.pose_refine:
         overrides["pose_refine"] = True
+    if args.exposure_compensation:
+        overrides["exposure_compensation"] = True
     if args.no_progress:
         overrides["progress"] = False
     missing = [name for name in missing if name not in overrides]

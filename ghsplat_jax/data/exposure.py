@@ -103,5 +103,6 @@ def exposure_warning(dataset, where: str) -> str | None:
     return (f"{where}: {len(odd)} photo(s) exposed unlike the rest of the capture, where they see the same SfM "
             f"points: {listed} the median photo's brightness. Training learns a training photo's exposure as "
             "view-dependent colour and shows it to new views from its side; a test photo's is scored against a "
-            "brightness no training view had. Lock the camera's exposure when capturing, or leave such photos out "
-            "(remove them from the images and run `ghsplat sfm` again)")
+            "brightness no training view had. Lock the camera's exposure when capturing, leave such photos out "
+            "(remove them from the images and run `ghsplat sfm` again), or match the training photos' exposure "
+            "while training (`ghsplat train --exposure-compensation`)")

@@ -241,6 +241,11 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         pose = json.loads(pose_file.read_text())
         extra["pose_refinement"] = pose["summary"]
         dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, pose["views"], pose["scene_extent"]))
+    exposure_file = run_dir / rd.EXPOSURE_NAME
+    if exposure_file.is_file():
+        import json
+
+        extra["exposure_compensation"] = json.loads(exposure_file.read_text())["summary"]
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
                     train_peak_rss_mb=meta.get("peak_rss_mb"), extra=extra)
 
@@ -272,6 +277,8 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
                                                                    "code_revision": revision}
     extra |= make_strategy(config).report(result.strategy_state)  # e.g. the auto strategy's compaction
+    if result.exposure is not None:  # every render evaluated keeps the common exposure: only the summary
+        extra["exposure_compensation"] = result.exposure["summary"]
     if result.pose is not None:  # the training views are evaluated at the poses the run refined them to
         from ghsplat_jax.train.pose import refine_views
 

@@ -102,6 +102,18 @@ class TrainConfig:
     pose_lr_trans: float = 1e-3         # x scene extent per Adam step of a view's translation
     pose_refine_from: int = 500         # corrections stay at zero before this step (the model is noise before)
 
+    # --- exposure compensation ----------------------------------------------------------------
+    # Learn a gain and an offset per colour channel for every training view (train/exposure.py),
+    # applied to its render inside the loss, so photos exposed or white-balanced unlike the rest
+    # (the exposure check's warning) are matched without the surfels learning their brightness as
+    # view-dependent colour. The model, and every render outside the loss, keeps the median photo's
+    # exposure: an L1 penalty holds the corrections at zero where the photos agree. The run writes
+    # exposure_corrections.json.
+    exposure_compensation: bool = False
+    exposure_lr: float = 5e-3           # per Adam step of a view's log gains and offsets
+    exposure_from: int = 500            # corrections stay at zero before this step
+    exposure_reg: float = 0.01          # x the L1 norm of (log gains, offsets), added to each view's loss
+
     # --- validation and stopping ----------------------------------------------------------
     # Every val_hold_every-th training view is held out of training and rendered every val_every
     # steps (0: no validation, every training view trains). The run stops itself when
@@ -253,6 +265,9 @@ class TrainConfig:
         if not (self.pose_lr_rot >= 0 and self.pose_lr_trans >= 0 and self.pose_refine_from >= 0):
             raise ConfigError("pose_lr_rot, pose_lr_trans and pose_refine_from must be >= 0, got "
                               f"{self.pose_lr_rot}, {self.pose_lr_trans}, {self.pose_refine_from}")
+        if not (self.exposure_lr >= 0 and self.exposure_from >= 0 and self.exposure_reg >= 0):
+            raise ConfigError("exposure_lr, exposure_from and exposure_reg must be >= 0, got "
+                              f"{self.exposure_lr}, {self.exposure_from}, {self.exposure_reg}")
         if self.pose_refine and self.step_threads > 1:
             raise ConfigError(f"pose_refine runs the one-program step: step_threads must be 0 or 1, got "
                               f"{self.step_threads}")
@@ -284,7 +299,7 @@ class TrainConfig:
             dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
             opacity_reset_every=s(self.opacity_reset_every, 100), res_until=s(self.res_until, 0),
-            pose_refine_from=s(self.pose_refine_from, 0),
+            pose_refine_from=s(self.pose_refine_from, 0), exposure_from=s(self.exposure_from, 0),
             strategy=dataclasses.replace(self.strategy, contrib_prune_every=s(self.strategy.contrib_prune_every)
                                          if self.strategy.contrib_prune_every else 0))
 

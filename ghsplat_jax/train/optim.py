@@ -69,3 +69,16 @@ def reset_rows(opt_state: dict, rows: jax.Array, groups=GROUPS) -> dict:
         return leaf
 
     return {name: (jax.tree_util.tree_map(zero, s) if name in groups else s) for name, s in opt_state.items()}
+
+
+def adam_row_step(adam: optax.GradientTransformation, values: jax.Array, moments, row, grad: jax.Array, rate,
+                  on) -> tuple[jax.Array, object]:
+    """One Adam step of row `row` of per-view `values` (V, D) with its own `moments` (optax state
+    with a row per view, as from `jax.vmap(adam.init)`), at `rate` (scalar or (D,)); other rows are
+    untouched. `on` (bool): False leaves everything as it was. A view not drawn keeps its values and
+    moments (no momentum drift between its visits)."""
+    old = jax.tree_util.tree_map(lambda a: a[row], moments)
+    step, new = adam.update(grad, old)
+    keep = lambda n, o: jnp.where(on, n, o)  # noqa: E731
+    moments = jax.tree_util.tree_map(lambda a, n: a.at[row].set(keep(n, a[row])), moments, new)
+    return values.at[row].set(keep(values[row] - rate * step, values[row])), moments

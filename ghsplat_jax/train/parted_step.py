@@ -35,7 +35,15 @@ from ghsplat_jax.raster.render import (
     project_surfels,
     render_outputs,
 )
-from ghsplat_jax.train.step import TRACE_COUNTS, apply_gradients, image_loss, regularisers, step_surfels
+from ghsplat_jax.train.step import (
+    TRACE_COUNTS,
+    apply_gradients,
+    image_loss,
+    regularisers,
+    step_surfels,
+    update_view_corrections,
+    view_corrections,
+)
 
 
 # One program serves every part: the part's index is an argument, not a constant.
@@ -49,8 +57,10 @@ def _backward_part(st, j, bounds, inputs):
     return carried.backward_part(st, inputs, bounds[j], bounds[j + 1])
 
 
-def make_parted_step(optimizers, weights, parts: int):
-    """A step with `step_builder.make_train_step`'s signature whose compositor runs in `parts` threads."""
+def make_parted_step(optimizers, weights, parts: int, exposure_rates=None):
+    """A step with `step_builder.make_train_step`'s signature whose compositor runs in `parts` threads.
+    It learns exposure corrections (a state with `exposure`), not pose ones: the camera's gradient
+    is not carried through the parts."""
     pool = ThreadPoolExecutor(parts, thread_name_prefix="compositor")
 
     def in_parts(fn, *args):
@@ -76,31 +86,33 @@ def make_parted_step(optimizers, weights, parts: int):
 
     @functools.partial(jax.jit, static_argnames=("raster_cfg", "width", "height"))
     def middle(forward_parts, state, table, p, layout, surfel, valid, image, K, world_to_cam, raster_cfg, width,
-               height):
+               height, view):
         camera = Camera(K, world_to_cam, width, height)
         grid, st = compositor_static(raster_cfg, width, height)
         outputs, (totals, selected, live) = carried.join_forward(st, forward_parts, surfel.shape[1])
 
-        def loss_of(totals, median):
+        def loss_of(totals, median, tone):
             out = render_outputs(totals, median, raster_cfg, grid, camera, p, layout, raster_cfg.pair_capacity, None)
-            return image_loss(out, image, camera, state.step, weights, raster_cfg)
+            return image_loss(out, image, camera, state.step, weights, raster_cfg, tone)
 
-        loss, pull_back, aux = jax.vjp(loss_of, *outputs, has_aux=True)
-        cotangents = pull_back(jnp.ones_like(loss))
+        _, tone = view_corrections(state, view)
+        loss, pull_back, aux = jax.vjp(loss_of, *outputs, tone, has_aux=True)
+        *cotangents, tone_grad = pull_back(jnp.ones_like(loss))
         residuals = (table, surfel, valid, layout.chunk_tile, None, totals, selected, live)
         inputs, num_live = carried.backward_inputs(st, residuals, cotangents)
-        return inputs, carried.split_chunks(inputs.first, num_live, parts), loss, aux
+        return inputs, carried.split_chunks(inputs.first, num_live, parts), loss, aux, tone_grad
 
     @functools.partial(jax.jit, static_argnames=("width", "height"))
-    def finish(state, pull_back, table_grads, loss, aux, means_lr, width, height):
+    def finish(state, pull_back, table_grads, loss, aux, means_lr, width, height, view, tone_grad):
         grads, probe_grad = pull_back(sum(table_grads[1:], table_grads[0]))
         if weights.opacity_reg > 0 or weights.scale_reg > 0:
             reg, reg_grads = jax.value_and_grad(regularisers)(state.params, state.active, weights)
             loss = loss + reg
             grads = jax.tree_util.tree_map(jnp.add, grads, reg_grads)
-        return apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+        new, metrics = apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+        return update_view_corrections(new, metrics, view, state.step, None, tone_grad, None, exposure_rates)
 
-    def step(state, image, K, world_to_cam, means_lr, raster_cfg, width, height):
+    def step(state, image, K, world_to_cam, means_lr, raster_cfg, width, height, view=None):
         raster_cfg = dataclasses.replace(raster_cfg, batch_chunks=raster_cfg.part_batch_chunks)
         if raster_cfg.pair_capacity is None:  # as `render` sizes a traced render's buffer
             camera = Camera(K, world_to_cam, width, height)
@@ -110,9 +122,9 @@ def make_parted_step(optimizers, weights, parts: int):
         table, pull_back, p, layout, surfel, valid, bounds = front(state, K, world_to_cam, raster_cfg, width, height)
         forward_parts = in_parts(lambda j: _forward_part(st, j, bounds, table, surfel, valid, layout.chunk_tile,
                                                          layout.chunk_first, None))
-        inputs, bounds, loss, aux = middle(forward_parts, state, table, p, layout, surfel, valid, image, K,
-                                           world_to_cam, raster_cfg, width, height)
+        inputs, bounds, loss, aux, tone_grad = middle(forward_parts, state, table, p, layout, surfel, valid, image, K,
+                                                      world_to_cam, raster_cfg, width, height, view)
         table_grads = in_parts(lambda j: _backward_part(st, j, bounds, inputs))
-        return finish(state, pull_back, table_grads, loss, aux, means_lr, width, height)
+        return finish(state, pull_back, table_grads, loss, aux, means_lr, width, height, view, tone_grad)
 
     return step

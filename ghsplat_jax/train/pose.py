@@ -24,6 +24,7 @@ import numpy as np
 import optax
 
 from ghsplat_jax.core.precision import FLOAT32
+from ghsplat_jax.train.optim import adam_row_step
 
 log = logging.getLogger("ghsplat.train")
 
@@ -82,13 +83,9 @@ def correct(world_to_cam: jax.Array, delta: jax.Array, extent) -> jax.Array:
 def update_view(pose: PoseState, view, grad: jax.Array, lr_rot: float, lr_trans: float, on) -> PoseState:
     """One Adam step of view `view`'s correction from its gradient `grad` (6,); other views are
     untouched. `on` (bool): False leaves everything as it was (before pose_refine_from)."""
-    row = jax.tree_util.tree_map(lambda a: a[view], pose.adam)
-    step, row_new = pose_adam().update(grad, row)
     rate = jnp.array([lr_rot] * 3 + [lr_trans] * 3, jnp.float32)
-    delta_row = pose.delta[view] - rate * step
-    keep = lambda new, old: jnp.where(on, new, old)  # noqa: E731
-    adam = jax.tree_util.tree_map(lambda a, new: a.at[view].set(keep(new, a[view])), pose.adam, row_new)
-    return dataclasses.replace(pose, delta=pose.delta.at[view].set(keep(delta_row, pose.delta[view])), adam=adam)
+    delta, adam = adam_row_step(pose_adam(), pose.delta, pose.adam, view, grad, rate, on)
+    return dataclasses.replace(pose, delta=delta, adam=adam)
 
 
 # ----------------------------------------------------------------------------- host side

@@ -28,6 +28,7 @@ TEST_CURVE_NAME = "test_curve.jsonl"
 CHECKPOINT_NAME = "checkpoint.npz"
 PLY_NAME = "point_cloud.ply"
 POSE_NAME = "pose_corrections.json"
+EXPOSURE_NAME = "exposure_corrections.json"
 METRICS_NAME = "metrics.json"
 PER_VIEW_NAME = "per_view.json"
 TEST_RENDERS = Path("renders") / "test"
@@ -117,16 +118,18 @@ def load_training_data(config):
 
 
 def load_run_checkpoint(path, optimizers: dict):
-    """(TrainState, metadata) of a run's checkpoint (the pool size, and the number of pose-refined
-    views, from the file)."""
+    """(TrainState, metadata) of a run's checkpoint (the pool size, and the numbers of views with
+    pose and exposure corrections, from the file)."""
     from ghsplat_jax.train import checkpoint as ckpt
+    from ghsplat_jax.train.exposure import init_exposure
     from ghsplat_jax.train.pose import init_pose
     from ghsplat_jax.train.state import empty_params, new_state
 
     meta = ckpt.read_meta(path)
     pose = init_pose(meta["pose_views"], 1.0) if meta.get("pose_views") else None
+    exposure = init_exposure(meta["exposure_views"]) if meta.get("exposure_views") else None
     template = new_state(empty_params(meta["capacity"], meta["sh_degree"]), np.zeros(meta["capacity"], bool),
-                         optimizers, pose)
+                         optimizers, pose, exposure)
     return ckpt.load_checkpoint(path, template)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.surfels import Surfels
 from ghsplat_jax.raster.render import capacity_bucket
+from ghsplat_jax.train.exposure import ExposureState
 from ghsplat_jax.train.pose import PoseState
 
 INACTIVE_LOGIT = -20.0  # sigmoid ~ 2e-9: an empty slot is invisible even if it were drawn
@@ -28,6 +29,7 @@ class TrainState:
     max_radii: jax.Array   # (cap,) largest screen radius (px) since the last densification
     step: jax.Array        # () int32: steps completed
     pose: PoseState | None = None  # per-view pose corrections (TrainConfig.pose_refine), else None
+    exposure: ExposureState | None = None  # per-view colour corrections (TrainConfig.exposure_compensation)
 
     @property
     def capacity(self) -> int:
@@ -155,7 +157,8 @@ def pad_params(s: Surfels, capacity: int) -> tuple[Surfels, np.ndarray]:
     return padded, active
 
 
-def new_state(params: Surfels, active, optimizers: dict, pose: PoseState | None = None) -> TrainState:
+def new_state(params: Surfels, active, optimizers: dict, pose: PoseState | None = None,
+              exposure: ExposureState | None = None) -> TrainState:
     from ghsplat_jax.train import optim
 
     params = jax.tree_util.tree_map(jnp.asarray, params)
@@ -169,6 +172,7 @@ def new_state(params: Surfels, active, optimizers: dict, pose: PoseState | None 
         max_radii=jnp.zeros(cap, jnp.float32),
         step=jnp.zeros((), jnp.int32),
         pose=pose,
+        exposure=exposure,
     )
 
 
@@ -182,6 +186,15 @@ def _map_rows(tree, capacity: int, fn):
     return jax.tree_util.tree_map(one, tree)
 
 
+def _without_views(state: TrainState) -> TrainState:
+    """The state without its per-view corrections: they have a row per view, not per pool slot."""
+    return dataclasses.replace(state, pose=None, exposure=None)
+
+
+def _with_views(state: TrainState, like: TrainState) -> TrainState:
+    return dataclasses.replace(state, pose=like.pose, exposure=like.exposure)
+
+
 def grow(state: TrainState, capacity: int) -> TrainState:
     """The same state in a larger pool (new slots empty, zero statistics and moments)."""
     old = state.capacity
@@ -191,8 +204,8 @@ def grow(state: TrainState, capacity: int) -> TrainState:
     empty = empty_params(extra, state.params.sh_degree)
     params = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, jnp.asarray(b)], 0), state.params, empty)
     zeros = lambda leaf: jnp.concatenate([leaf, jnp.zeros((extra,) + leaf.shape[1:], leaf.dtype)], 0)  # noqa: E731
-    rest = _map_rows(dataclasses.replace(state, params=None, pose=None), old, zeros)
-    return dataclasses.replace(rest, params=params, pose=state.pose)
+    rest = _map_rows(dataclasses.replace(_without_views(state), params=None), old, zeros)
+    return _with_views(dataclasses.replace(rest, params=params), state)
 
 
 def compact(state: TrainState, capacity: int) -> TrainState:
@@ -205,9 +218,8 @@ def compact(state: TrainState, capacity: int) -> TrainState:
     if capacity < len(live):
         raise ValueError(f"{len(live)} live surfels do not fit a pool of capacity {capacity}")
     rows = jnp.asarray(np.concatenate([live, free])[:min(capacity, state.capacity)])
-    # The pose corrections have a row per view, not per slot: they stay as they are.
-    moved = _map_rows(dataclasses.replace(state, pose=None), state.capacity, lambda leaf: leaf[rows])
-    return grow(dataclasses.replace(moved, pose=state.pose), capacity)
+    moved = _map_rows(_without_views(state), state.capacity, lambda leaf: leaf[rows])
+    return grow(_with_views(moved, state), capacity)
 
 
 def compiles_cost_more_than_slots() -> bool:

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.core.camera import Camera
+from ghsplat_jax.train import exposure as exposure_mod
 from ghsplat_jax.train import losses, optim
 from ghsplat_jax.train import pose as pose_mod
 from ghsplat_jax.train.densify import accumulate_stats
@@ -30,6 +31,7 @@ class LossWeights:
     sh_increase_every: int
     opacity_reg: float = 0.0  # L1 regularisers (3DGS-MCMC); the strategy's default where the config says -1
     scale_reg: float = 0.0
+    exposure_reg: float = 0.0  # x the L1 norm of a view's exposure correction (with exposure compensation)
 
     @classmethod
     def from_config(cls, c) -> "LossWeights":
@@ -37,7 +39,7 @@ class LossWeights:
 
         return cls(c.lambda_dssim, c.lambda_dist, c.dist_from, c.lambda_normal, c.normal_from,
                    c.depth_ratio, c.sh_degree, c.sh_increase_every, loss_weight(c, "lambda_opacity_reg"),
-                   loss_weight(c, "lambda_scale_reg"))
+                   loss_weight(c, "lambda_scale_reg"), c.exposure_reg)
 
 
 def sh_band_mask(step: jax.Array, w: LossWeights, num_rest: int) -> jax.Array:
@@ -55,13 +57,17 @@ def step_surfels(params, active, camera: Camera, step, w: LossWeights):
     return dataclasses.replace(p, sh_rest=p.sh_rest * mask[None, :, None])
 
 
-def image_loss(out, image, camera: Camera, step, w: LossWeights, raster_cfg):
+def image_loss(out, image, camera: Camera, step, w: LossWeights, raster_cfg, tone=None):
     """The loss of a render against `image` (H,W,3), or (H,W,4) with the image's alpha, which
-    masks the normal loss; and the step's metrics."""
+    masks the normal loss; and the step's metrics. `tone` (6,): the view's exposure correction,
+    applied to the render's colour (None: the render as it is)."""
     image, coverage = (image, None) if image.shape[-1] == 3 else (image[..., :3], image[..., 3])
-    l1 = losses.l1(out.rgb, image)
-    ssim = losses.ssim(out.rgb, image)
+    rgb = out.rgb if tone is None else exposure_mod.apply(out.rgb, tone)
+    l1 = losses.l1(rgb, image)
+    ssim = losses.ssim(rgb, image)
     loss = (1.0 - w.lambda_dssim) * l1 + w.lambda_dssim * (1.0 - ssim)
+    if tone is not None:
+        loss = loss + w.exposure_reg * exposure_mod.penalty(tone)
     dist = jnp.mean(out.distortion)
     # A geometry term is computed only while the render computes what it reads
     # (`trainer.step_raster_config` switches it on at its start step).
@@ -74,7 +80,7 @@ def image_loss(out, image, camera: Camera, step, w: LossWeights, raster_cfg):
         dn = losses.depth_to_normal(depth, camera.K, camera.world_to_cam)
         normal_loss = losses.normal_consistency(out.normal, dn, out.alpha, coverage)
         loss = loss + jnp.where(step >= w.normal_from, w.lambda_normal, 0.0) * normal_loss
-    aux = dict(l1=l1, ssim=ssim, psnr=losses.psnr(out.rgb, image), distortion=dist, normal=normal_loss,
+    aux = dict(l1=l1, ssim=ssim, psnr=losses.psnr(rgb, image), distortion=dist, normal=normal_loss,
                visible=out.visible, radii=out.radii, num_pairs=out.stats.num_pairs,
                overflow=out.stats.overflow)
     return loss, aux
@@ -88,9 +94,9 @@ def regularisers(params, active, w: LossWeights):
             + w.scale_reg * jnp.sum(jnp.exp(params.log_scales) * live[:, None]) / n)
 
 
-def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn):
+def _loss(params, probe, active, image, camera: Camera, step, w: LossWeights, raster_cfg, render_fn, tone=None):
     out = render_fn(step_surfels(params, active, camera, step, w), camera, raster_cfg, means2d_probe=probe)
-    loss, aux = image_loss(out, image, camera, step, w, raster_cfg)
+    loss, aux = image_loss(out, image, camera, step, w, raster_cfg, tone)
     if w.opacity_reg > 0 or w.scale_reg > 0:
         loss = loss + regularisers(params, active, w)
     return loss, aux
@@ -117,42 +123,67 @@ class PoseRates:
         return cls(c.pose_lr_rot, c.pose_lr_trans, c.pose_refine_from) if c.pose_refine else None
 
 
+@dataclasses.dataclass(frozen=True)
+class ExposureRates:
+    """Static exposure-compensation settings (hashable): Adam's rate and the first step that learns."""
+
+    lr: float
+    start: int
+
+    @classmethod
+    def from_config(cls, c) -> "ExposureRates | None":
+        return cls(c.exposure_lr, c.exposure_from) if c.exposure_compensation else None
+
+
+def view_corrections(state: TrainState, view):
+    """Training view `view`'s pose and exposure corrections (each None where the state has none)."""
+    delta = None if state.pose is None else state.pose.delta[view]
+    tone = None if state.exposure is None else state.exposure.values[view]
+    return delta, tone
+
+
+def update_view_corrections(state: TrainState, metrics: dict, view, step, delta_grad, tone_grad,
+                            pose_rates: PoseRates | None, exposure_rates: ExposureRates | None):
+    """One Adam step of training view `view`'s corrections (those the state has) from their
+    gradients, taken at step `step`; (new state, metrics with the corrections' sizes)."""
+    finite = metrics["finite"]
+    if state.pose is not None:
+        pose = pose_mod.update_view(state.pose, view, delta_grad, pose_rates.rot, pose_rates.trans,
+                                    step >= pose_rates.start)
+        d = pose.delta[view]
+        finite = finite & jnp.all(jnp.isfinite(d))
+        metrics = metrics | dict(pose_deg=jnp.degrees(jnp.linalg.norm(d[:3])), pose_pct=100.0 * jnp.linalg.norm(d[3:]))
+        state = dataclasses.replace(state, pose=pose)
+    if state.exposure is not None:
+        exposure = exposure_mod.update_view(state.exposure, view, tone_grad, exposure_rates.lr,
+                                            step >= exposure_rates.start)
+        t = exposure.values[view]
+        finite = finite & jnp.all(jnp.isfinite(t))
+        metrics = metrics | dict(exposure_gain=jnp.exp(jnp.mean(t[:3])))
+        state = dataclasses.replace(state, exposure=exposure)
+    return state, metrics | dict(finite=finite)
+
+
 def train_step(state: TrainState, image, K, world_to_cam, means_lr, *, width: int, height: int, optimizers, weights,
-               raster_cfg, render_fn, view=None, pose_rates: PoseRates | None = None):
+               raster_cfg, render_fn, view=None, pose_rates: PoseRates | None = None,
+               exposure_rates: ExposureRates | None = None):
     """One step on one view; returns (new state, metrics). Rows of free slots get zero
     gradients; `finite` is False when the loss, a gradient or a live parameter is not finite.
-    A state with pose corrections (`state.pose`) refines training view `view`'s pose as well."""
-    if state.pose is not None:
-        return pose_step(state, image, K, world_to_cam, means_lr, view, width=width, height=height,
-                         optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn,
-                         rates=pose_rates)
-    camera = Camera(K, world_to_cam, width, height)
+    A state with per-view corrections (`state.pose`, `state.exposure`) also differentiates
+    through training view `view`'s and takes one Adam step of them (from their start steps)."""
     probe = jnp.zeros((state.capacity, 2), jnp.float32)
-    grad_fn = jax.value_and_grad(_loss, argnums=(0, 1), has_aux=True)
-    (loss, aux), (grads, probe_grad) = grad_fn(state.params, probe, state.active, image, camera, state.step,
-                                                weights, raster_cfg, render_fn)
-    return apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
+    delta, tone = view_corrections(state, view)
 
+    def loss_of(params, probe, delta, tone):
+        w2c = world_to_cam if delta is None else pose_mod.correct(world_to_cam, delta, state.pose.extent)
+        return _loss(params, probe, state.active, image, Camera(K, w2c, width, height), state.step, weights,
+                     raster_cfg, render_fn, tone)
 
-def pose_step(state: TrainState, image, K, world_to_cam, means_lr, view, *, width: int, height: int, optimizers,
-              weights, raster_cfg, render_fn, rates: PoseRates):
-    """`train_step` that also differentiates through view `view`'s pose correction and takes one
-    Adam step of that correction alone (from step `rates.start` on)."""
-    pose = state.pose
-    probe = jnp.zeros((state.capacity, 2), jnp.float32)
-
-    def loss_of(params, probe, delta):
-        camera = Camera(K, pose_mod.correct(world_to_cam, delta, pose.extent), width, height)
-        return _loss(params, probe, state.active, image, camera, state.step, weights, raster_cfg, render_fn)
-
-    grad_fn = jax.value_and_grad(loss_of, argnums=(0, 1, 2), has_aux=True)
-    (loss, aux), (grads, probe_grad, delta_grad) = grad_fn(state.params, probe, pose.delta[view])
+    grad_fn = jax.value_and_grad(loss_of, argnums=(0, 1, 2, 3), has_aux=True)
+    (loss, aux), (grads, probe_grad, delta_grad, tone_grad) = grad_fn(state.params, probe, delta, tone)
     new, metrics = apply_gradients(state, loss, aux, grads, probe_grad, means_lr, optimizers, width, height)
-    pose = pose_mod.update_view(pose, view, delta_grad, rates.rot, rates.trans, state.step >= rates.start)
-    d = pose.delta[view]
-    metrics = metrics | dict(finite=metrics["finite"] & jnp.all(jnp.isfinite(d)),
-                             pose_deg=jnp.degrees(jnp.linalg.norm(d[:3])), pose_pct=100.0 * jnp.linalg.norm(d[3:]))
-    return dataclasses.replace(new, pose=pose), metrics
+    return update_view_corrections(new, metrics, view, state.step, delta_grad, tone_grad, pose_rates,
+                                   exposure_rates)
 
 
 def apply_gradients(state: TrainState, loss, aux, grads, probe_grad, means_lr, optimizers, width: int, height: int):

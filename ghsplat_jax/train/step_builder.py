@@ -9,7 +9,7 @@ import jax
 
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.parted_step import make_parted_step
-from ghsplat_jax.train.step import TRACE_COUNTS, LossWeights, PoseRates, train_step
+from ghsplat_jax.train.step import TRACE_COUNTS, ExposureRates, LossWeights, PoseRates, train_step
 
 
 def step_threads(config) -> int:
@@ -32,14 +32,16 @@ def make_train_step(config, render_fn=None):
     once per pool capacity, image size and raster_cfg (static). Runs with identical settings
     still share the XLA binary through JAX's persistent compilation cache, which keys on the
     program. The state is not donated: a step that overflows its pair buffer or goes non-finite
-    is redone or rolled back from it. With `config.pose_refine` the step also takes `view`, the
-    training view's index into the state's pose corrections, and is always the one program."""
+    is redone or rolled back from it. With `config.pose_refine` or `config.exposure_compensation`
+    the step also takes `view`, the training view's index into the state's per-view corrections;
+    with `pose_refine` it is always the one program."""
     optimizers = optim.make_optimizers(config)
     weights = LossWeights.from_config(config)
     pose_rates = PoseRates.from_config(config)
+    exposure_rates = ExposureRates.from_config(config)
     threads = step_threads(config)
     if render_fn is None and threads > 1:
-        return optimizers, make_parted_step(optimizers, weights, threads)
+        return optimizers, make_parted_step(optimizers, weights, threads, exposure_rates)
     if render_fn is None:
         from ghsplat_jax.raster.render import render as render_fn
 
@@ -47,6 +49,6 @@ def make_train_step(config, render_fn=None):
         TRACE_COUNTS["train_step"] += 1
         return train_step(state, image, K, world_to_cam, means_lr, width=width, height=height,
                           optimizers=optimizers, weights=weights, raster_cfg=raster_cfg, render_fn=render_fn,
-                          view=view, pose_rates=pose_rates)
+                          view=view, pose_rates=pose_rates, exposure_rates=exposure_rates)
 
     return optimizers, jax.jit(step, static_argnames=("raster_cfg", "width", "height"))

@@ -28,6 +28,7 @@ from ghsplat_jax.host_memory import IN_RUN_MAP_SHARE, MAPS_CHECK_EVERY, release_
 from ghsplat_jax.io_utils import code_revision
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
+from ghsplat_jax.train import exposure as exposure_mod
 from ghsplat_jax.train import optim
 from ghsplat_jax.train import pose as pose_mod
 from ghsplat_jax.train.carve import subject_points
@@ -42,6 +43,7 @@ from ghsplat_jax.train.resolution import (
 from ghsplat_jax.train.run_dir import (
     CHECKPOINT_NAME,
     CONFIG_NAME,
+    EXPOSURE_NAME,
     PLY_NAME,
     POSE_NAME,
     STATS_NAME,
@@ -82,6 +84,7 @@ class TrainResult:
     finished: bool = False  # the schedule ran out or the stop rule stopped it (not an `until` pause)
     stop: dict | None = None  # the stop rule's state (runs with validation): best step, why it stopped
     pose: dict | None = None  # pose refinement: what pose_corrections.json holds
+    exposure: dict | None = None  # exposure compensation: what exposure_corrections.json holds
 
     @property
     def surfels(self):
@@ -266,12 +269,16 @@ class TrainingSession:
         self.initial_count = init.num
         self.sstate = self.strategy.init_state(init.num)
         params, active = pad_params(init, cap)
-        self.state = new_state(params, active, self.optimizers, self._fresh_pose())
+        self.state = new_state(params, active, self.optimizers, self._fresh_pose(), self._fresh_exposure())
         self.pair_capacity = c.raster.pair_capacity or self._measure_pairs()
 
     def _fresh_pose(self):
         """Zero pose corrections, one per training view (None without pose refinement)."""
         return pose_mod.init_pose(len(self.view_names), self.extent) if self.config.pose_refine else None
+
+    def _fresh_exposure(self):
+        """No exposure corrections, one per training view (None without exposure compensation)."""
+        return exposure_mod.init_exposure(len(self.view_names)) if self.config.exposure_compensation else None
 
     def _measure_pairs(self) -> int:
         """Size the pair buffer from an eager render of the first view (automatic capacity)."""
@@ -298,13 +305,16 @@ class TrainingSession:
         if saved is None:  # a checkpoint from before strategies kept state: theirs is a function of the config
             log.info("%s: no strategy state saved; rebuilt from the config", path)
         self.sstate = template if saved is None else saved
-        has = self.state.pose is not None
-        if has != self.config.pose_refine or (has and self.state.pose.num_views != len(self.view_names)):
-            log.warning("%s: the checkpoint's pose corrections (%s) do not fit this run's pose_refine = %s and %d "
-                        "training views; %s", path, self.state.pose.num_views if has else "none",
-                        self.config.pose_refine, len(self.view_names),
-                        "starting them from zero" if self.config.pose_refine else "dropping them")
-            self.state = dataclasses.replace(self.state, pose=self._fresh_pose())
+        c = self.config
+        for field, setting, on, fresh in (("pose", "pose_refine", c.pose_refine, self._fresh_pose),
+                                          ("exposure", "exposure_compensation", c.exposure_compensation,
+                                           self._fresh_exposure)):
+            saved = getattr(self.state, field)
+            if (saved is not None) != on or (saved is not None and saved.num_views != len(self.view_names)):
+                log.warning("%s: the checkpoint's %s corrections (%s) do not fit this run's %s = %s and %d training "
+                            "views; %s", path, field, saved.num_views if saved is not None else "none", setting, on,
+                            len(self.view_names), "starting them from zero" if on else "dropping them")
+                self.state = dataclasses.replace(self.state, **{field: fresh()})
         log.info("resumed from %s at step %d", path, int(self.state.step))
 
     def save(self, seconds: float):
@@ -313,13 +323,16 @@ class TrainingSession:
                      pair_capacity=self.pair_capacity, rollbacks=self.rollbacks, train_seconds=seconds,
                      initial_count=self.initial_count, peak_rss_mb=max(peak_rss_mb(), self.prior_peak_rss_mb),
                      config=self.config.to_dict(), stop_rule=self.stop_state,
-                     pose_views=s.pose.num_views if s.pose is not None else 0)
+                     pose_views=s.pose.num_views if s.pose is not None else 0,
+                     exposure_views=s.exposure.num_views if s.exposure is not None else 0)
         extra.update(self.strategy.meta(self.sstate))
         ckpt.save_checkpoint(self.out / CHECKPOINT_NAME, s, extra, aux=self.sstate)
-        if s.pose is not None:
-            from ghsplat_jax.io_utils import write_json
+        from ghsplat_jax.io_utils import write_json
 
+        if s.pose is not None:
             write_json(self.out / POSE_NAME, self.pose_report())
+        if s.exposure is not None:
+            write_json(self.out / EXPOSURE_NAME, self.exposure_report())
 
     def pose_report(self) -> dict | None:
         """pose_corrections.json: the scene extent, each training view's correction, a summary."""
@@ -328,6 +341,13 @@ class TrainingSession:
         rows = pose_mod.corrections_report(self.state.pose, self.view_names)
         return {"scene_extent": self.extent, "step": int(self.state.step),
                 "summary": pose_mod.corrections_summary(rows), "views": rows}
+
+    def exposure_report(self) -> dict | None:
+        """exposure_corrections.json: each training view's gains and offsets, a summary."""
+        if self.state.exposure is None:
+            return None
+        rows = exposure_mod.corrections_report(self.state.exposure, self.view_names)
+        return {"step": int(self.state.step), "summary": exposure_mod.corrections_summary(rows), "views": rows}
 
     def context(self) -> StrategyContext:
         return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
@@ -432,7 +452,8 @@ class TrainingSession:
         while True:
             rcfg = step_raster_config(c, self.pair_capacity, step)
             lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
-            view = {} if self.state.pose is None else {"view": jnp.int32(v)}
+            per_view = self.state.pose is not None or self.state.exposure is not None
+            view = {"view": jnp.int32(v)} if per_view else {}
             new, m = self.step_fn(self.state, image, K, self.w2cs[v], lr, rcfg, width, height, **view)
             m = jax.device_get(m)
             if int(m["overflow"]) <= 0:
@@ -642,9 +663,12 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     pose = session.pose_report()
     if pose is not None and finished:
         pose["summary"]["warnings"] = pose_mod.warn_large(pose["views"])
+    exposure = session.exposure_report()
+    if exposure is not None and finished:
+        exposure["summary"]["matched"] = exposure_mod.describe_large(exposure["views"])
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count,
                          jax.device_get(session.sstate), finished, session.stop_state if config.val_every else None,
-                         pose)
+                         pose, exposure)
     if finished:
         from ghsplat_jax.data.ply import save_ply
 
