@@ -8,7 +8,14 @@ import logging
 import numpy as np
 
 from ghsplat_jax.eval.evaluate import diagnose
-from ghsplat_jax.eval.metrics import image_metrics, psnr_outliers, structure_mask, structure_metrics, summarize
+from ghsplat_jax.eval.metrics import (
+    colour_corrected_metrics,
+    image_metrics,
+    psnr_outliers,
+    structure_mask,
+    structure_metrics,
+    summarize,
+)
 
 
 def _plant(h=48, w=64):
@@ -75,3 +82,16 @@ def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
     assert len(out["warnings"]) == 3
     calm = diagnose({"train": {"psnr": 30.0}, "test": {"psnr": 28.0}}, rows[:5])
     assert calm["warnings"] == [] and calm["train_test_gap_db"] == 2.0
+
+
+def test_colour_corrected_psnr_takes_out_a_views_exposure_and_nothing_else():
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.05, 0.6, (24, 32, 3)).astype(np.float32)
+    exposed = np.clip(photo * np.array([1.6, 1.5, 1.7]) + 0.02, 0, 1).astype(np.float32)  # brighter and tinted
+    assert image_metrics(photo, exposed)["psnr"] < 15.0
+    assert colour_corrected_metrics(photo, exposed)["psnr_cc"] > 50.0  # a gain and offset explain all of it
+    # An error of the scene itself stays: noise no gain or offset can fit. Never below plain PSNR.
+    noisy = np.clip(photo + rng.normal(0, 0.05, photo.shape), 0, 1).astype(np.float32)
+    plain, corrected = image_metrics(noisy, photo)["psnr"], colour_corrected_metrics(noisy, photo)["psnr_cc"]
+    assert plain <= corrected < plain + 0.5
+    assert set(summarize([{"psnr": 20.0, "l1": 0.1, "ssim": 0.8, "psnr_cc": 22.0}])) >= {"psnr_cc"}

@@ -17,6 +17,7 @@ from ghsplat_jax.eval.geometry import geometry_errors, ground_truth, truth_sourc
 from ghsplat_jax.eval.metrics import (
     TRAIN_TEST_GAP_DB,
     background_cover,
+    colour_corrected_metrics,
     image_metrics,
     lpips_metrics,
     missing_structure,
@@ -104,6 +105,8 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             times.append(dt)
             m = (image_metrics(out.rgb, v.image) | structure_metrics(out.rgb, v.image, v.alpha)
                  | background_cover(out.alpha, v.alpha))
+            if split == "test":
+                m |= colour_corrected_metrics(out.rgb, v.image)
             if split == "test" and config.eval_lpips:  # the papers report it on test views; a VGG pass is costly
                 m |= lpips_metrics(out.rgb, v.image)
             truth = None if frame is None else ground_truth(frame[0], v.name, v.camera.width, v.camera.height)

@@ -12,7 +12,8 @@ from ghsplat_jax.eval.geometry import GEOMETRY_METRICS
 from ghsplat_jax.train import losses
 
 METRICS = ("psnr", "l1", "ssim")
-OPTIONAL_METRICS = ("lpips",)  # per view only where evaluation computes it (the test views, weights installed)
+# Per view only where evaluation computes them: the test views (LPIPS where its weights are installed).
+OPTIONAL_METRICS = ("lpips", "psnr_cc")
 
 
 @jax.jit
@@ -29,6 +30,23 @@ def image_metrics(rendered, target) -> dict[str, float]:
     if rendered.shape != target.shape:
         raise ValueError(f"render {rendered.shape} and target {target.shape} differ in shape")
     return {k: float(v) for k, v in _image_metrics(rendered, target).items()}
+
+
+def colour_corrected_metrics(rendered, target) -> dict[str, float]:
+    """{"psnr_cc": PSNR after the per-channel gain and offset that best fit the render to the
+    photo (least squares; the render clipped to [0, 1] before and after)}: what is left when a
+    photo's exposure or white balance, which no model of the scene can know, is taken out (the
+    "colour-corrected" metric of mip-NeRF 360's evaluation, with a gain and offset per channel in
+    place of its 3x3 matrix). The gap to `psnr` is the part of the error a view's exposure explains."""
+    rendered = np.clip(np.asarray(rendered, np.float64), 0.0, 1.0).reshape(-1, 3)
+    target = np.asarray(target, np.float64)[..., :3].reshape(-1, 3)
+    fitted = np.empty_like(rendered)
+    for c in range(3):
+        design = np.stack([rendered[:, c], np.ones(len(rendered))], axis=1)
+        coef = np.linalg.lstsq(design, target[:, c], rcond=None)[0]
+        fitted[:, c] = design @ coef
+    mse = float(np.mean((np.clip(fitted, 0.0, 1.0) - target) ** 2))
+    return {"psnr_cc": float(-10.0 * np.log10(max(mse, 1e-20)))}
 
 
 def lpips_metrics(rendered, target) -> dict[str, float]:
