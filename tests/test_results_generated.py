@@ -7,6 +7,7 @@ Generators checked (each renders from committed files only, no run folders):
 - benchmarks/analysis/auto_recipe.py   -> benchmarks/results/auto_recipe/README.md and
   benchmarks/results/auto_recipe/real/README.md (each from its results.json)
 - benchmarks/robustness/sfm_crosscheck.py -> benchmarks/results/sfm_crosscheck/README.md (from its results.json)
+- benchmarks/analysis/exposure.py      -> benchmarks/results/exposure_real/README.md (from its results.json)
 
 The first two import no JAX; sfm_crosscheck's module does (its table helper): a few seconds.
 """
@@ -63,6 +64,14 @@ def test_auto_real_readme_is_generated(auto_recipe):
         pytest.skip("no auto_recipe/real results committed")
     diff = auto_recipe.check(out)
     assert not diff, "auto_recipe/real/README.md differs from its results.json:\n" + diff
+
+
+def test_exposure_readme_is_generated():
+    out = RESULTS / "exposure_real"
+    if not (out / "results.json").is_file():
+        pytest.skip("no exposure_real results committed")
+    diff = _module("benchmarks/analysis/exposure.py").check(out)
+    assert not diff, "exposure_real/README.md differs from its results.json:\n" + diff
 
 
 def test_sfm_crosscheck_readme_is_generated():
