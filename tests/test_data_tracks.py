@@ -111,3 +111,15 @@ def test_photos_exposed_unlike_the_rest_are_named_with_their_ratio(tmp_path):
     message = exposure_warning(odd, "scene")
     assert message.startswith("scene: 2 photo(s) exposed unlike the rest") and "002.png (train) 1.4" in message
     assert exposure_outliers(dataclasses.replace(odd, format="transforms")) is None  # no tracks: not told
+    # Where the config asks for it, a flagged training photo switches exposure compensation on.
+    from ghsplat_jax.train.config import TrainConfig
+    from ghsplat_jax.train.trainer import with_flagged_exposure
+
+    asked = TrainConfig(exposure_compensation_when_flagged=True)
+    assert with_flagged_exposure(asked, odd).exposure_compensation
+    assert not with_flagged_exposure(asked, even).exposure_compensation
+    assert not with_flagged_exposure(TrainConfig(), odd).exposure_compensation  # not asked: as it was
+    test_only = dataclasses.replace(odd, train=[v for v in odd.train if v.name not in ("002.png", "003.png")],
+                                    test=[v for v in odd.train if v.name in ("002.png", "003.png")])
+    assert not with_flagged_exposure(asked, test_only).exposure_compensation  # flagged test photos only
+    assert "Exposure compensation is on" in exposure_warning(odd, "scene", compensating=True)

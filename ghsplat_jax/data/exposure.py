@@ -94,15 +94,26 @@ def exposure_outliers(dataset, max_ratio: float = MAX_RATIO) -> list[tuple[str, 
     return sorted(odd, key=lambda item: -abs(math.log(item[2])))
 
 
-def exposure_warning(dataset, where: str) -> str | None:
-    """The warning for photos exposed unlike the rest (see the module docstring), or None."""
+def exposure_warning(dataset, where: str, compensating: bool = False) -> str | None:
+    """The warning for photos exposed unlike the rest (see the module docstring), or None.
+    `compensating`: training matches each training photo's exposure (train/exposure.py)."""
     odd = exposure_outliers(dataset)
     if not odd:
         return None
     listed = ", ".join(f"{name} ({split}) {ratio:.2f}x" for split, name, ratio in odd)
-    return (f"{where}: {len(odd)} photo(s) exposed unlike the rest of the capture, where they see the same SfM "
-            f"points: {listed} the median photo's brightness. Training learns a training photo's exposure as "
-            "view-dependent colour and shows it to new views from its side; a test photo's is scored against a "
-            "brightness no training view had. Lock the camera's exposure when capturing, leave such photos out "
-            "(remove them from the images and run `ghsplat sfm` again), or match the training photos' exposure "
-            "while training (`ghsplat train --exposure-compensation`)")
+    found = (f"{where}: {len(odd)} photo(s) exposed unlike the rest of the capture, where they see the same SfM "
+             f"points: {listed} the median photo's brightness. ")
+    if compensating:
+        return found + ("Exposure compensation is on, so training matches each training photo's exposure and the "
+                        "model keeps the median photo's; a test photo exposed unlike it is still scored against "
+                        "that (`psnr_cc` in metrics.json takes its exposure out)")
+    return found + ("Training learns a training photo's exposure as view-dependent colour and shows it to new views "
+                    "from its side; a test photo's is scored against a brightness no training view had. Lock the "
+                    "camera's exposure when capturing, leave such photos out (remove them from the images and run "
+                    "`ghsplat sfm` again), or match the training photos' exposure while training (`ghsplat train "
+                    "--exposure-compensation`)")
+
+
+def flagged_training_photos(dataset) -> list[str]:
+    """The training photos the check finds exposed unlike the rest (none where it cannot tell)."""
+    return [name for split, name, _ in exposure_outliers(dataset) or [] if split == "train"]

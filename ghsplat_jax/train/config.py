@@ -110,6 +110,7 @@ class TrainConfig:
     # exposure: an L1 penalty holds the corrections at zero where the photos agree. The run writes
     # exposure_corrections.json.
     exposure_compensation: bool = False
+    exposure_compensation_when_flagged: bool = False  # on where the exposure check flags a training photo
     exposure_lr: float = 5e-3           # per Adam step of a view's log gains and offsets
     exposure_from: int = 500            # corrections stay at zero before this step
     exposure_reg: float = 0.01          # x the L1 norm of (log gains, offsets), added to each view's loss

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ghsplat_jax.data.exposure import exposure_warning
+from ghsplat_jax.data.exposure import exposure_warning, flagged_training_photos
 from ghsplat_jax.data.tracks import pose_disagreement
 from ghsplat_jax.host_memory import IN_RUN_MAP_SHARE, MAPS_CHECK_EVERY, release_compiled_programs, reuse_freed_memory
 from ghsplat_jax.io_utils import code_revision
@@ -184,7 +184,8 @@ def warn_about_inputs(config: TrainConfig, dataset, carved: int | None = None) -
     cannot notice: random initialisation for want of SfM points (`carved`: that many of them kept
     inside the subject's silhouettes), too few training views, cameras that disagree with the SfM
     points they observed (data/tracks.py), or photos exposed unlike the rest (data/exposure.py)."""
-    messages = [m for m in (pose_disagreement(dataset, config.data), exposure_warning(dataset, config.data)) if m]
+    messages = [m for m in (pose_disagreement(dataset, config.data),
+                            exposure_warning(dataset, config.data, config.exposure_compensation)) if m]
     points = finite_points(dataset.points)
     if needs_random_init(points, config):
         start = (f"{carved} random points inside the subject's silhouettes" if carved else
@@ -564,6 +565,20 @@ def _terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
+def with_flagged_exposure(config: TrainConfig, dataset) -> TrainConfig:
+    """`config` with exposure compensation on where `exposure_compensation_when_flagged` asks for
+    it and the exposure check flags a training photo (data/exposure.py); as it was otherwise. The
+    check is a function of the data, so a resumed run decides the same."""
+    if config.exposure_compensation or not config.exposure_compensation_when_flagged:
+        return config
+    flagged = flagged_training_photos(dataset)
+    if not flagged:
+        return config
+    log.info("%s: exposure compensation on: training photo(s) %s exposed unlike the rest", config.data,
+             ", ".join(flagged))
+    return dataclasses.replace(config, exposure_compensation=True)
+
+
 def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, render_fn=None,
           until: int | None = None, test_eval=None) -> TrainResult:
     """Train (or resume) a run into `out_dir`; see the module docstring. Ctrl-C (or SIGTERM)
@@ -580,6 +595,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     dataset = dataset if dataset is not None else load_training_data(config)
+    config = with_flagged_exposure(config, dataset)
     session = TrainingSession(config, out, dataset, resume, render_fn)
     save_config(config, out / CONFIG_NAME)
     start = int(session.state.step)
