@@ -80,6 +80,10 @@ def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
     assert "over-fits" in text and "--recipe auto" in text
     assert "misses what the photos show" in text
     assert len(out["warnings"]) == 3
+    # A self-stopping run's advice names its held-out views' score instead of the recipe it already used.
+    stopped = diagnose(metrics | {"stop": {"best_val_psnr": 40.09}}, rows, where="RUN")
+    assert "held out to stop the run scored 40.09 dB" in stopped["warnings"][1]
+    assert "--recipe auto" not in stopped["warnings"][1]
     calm = diagnose({"train": {"psnr": 30.0}, "test": {"psnr": 28.0}}, rows[:5])
     assert calm["warnings"] == [] and calm["train_test_gap_db"] == 2.0
 

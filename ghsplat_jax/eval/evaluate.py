@@ -170,10 +170,16 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
     gap = None if train is None or test is None else float(train - test)
     out["train_test_gap_db"] = gap
     if gap is not None and gap > gap_db:
-        warn(f"the training views' PSNR ({train:.2f} dB) exceeds the test views' ({test:.2f} dB) by {gap:.1f} dB "
-             f"(more than {gap_db:g}): the model over-fits the training views. Use fewer surfels (--strategy "
-             "budget or mcmc with --max-surfels), more views, or `--recipe auto`, which stops when held-out views "
-             "stop improving")
+        found = (f"the training views' PSNR ({train:.2f} dB) exceeds the test views' ({test:.2f} dB) by {gap:.1f} dB "
+                 f"(more than {gap_db:g}): the model over-fits the training views. ")
+        val = (metrics.get("stop") or {}).get("best_val_psnr")
+        if val is not None:  # a self-stopping run: its held-out views did not see the over-fitting
+            warn(found + f"The views held out to stop the run scored {val:.2f} dB, so they lie closer to the "
+                 "training views than the test views do: capture more views between, or around, where the test "
+                 "views look from")
+        else:
+            warn(found + "Use fewer surfels (--strategy budget or mcmc with --max-surfels), more views, or "
+                 "`--recipe auto`, which stops when held-out views stop improving")
     missing = {}
     for split in ("train", "test"):
         s = metrics.get(split) or {}
