@@ -38,7 +38,8 @@ def run_record(run: Path) -> dict:
     corrections = run / "exposure_corrections.json"
     gains = {}
     if corrections.is_file():
-        gains = {r["name"]: statistics.fmean(r["gain"]) for r in json.loads(corrections.read_text())["views"]}
+        gains = {r["name"]: statistics.fmean((0.5 * g + b) / 0.5 for g, b in zip(r["gain"], r["offset"]))
+                 for r in json.loads(corrections.read_text())["views"]}
     return {"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed", 0),
             "compensation": bool(cfg.get("exposure_compensation", False)),
             **{k: test.get(k) for k in ("psnr", "psnr_cc", "ssim", "lpips")},
@@ -132,9 +133,10 @@ def readme(res: dict) -> str:
                      f"{fmt(r['psnr'])} | {fmt(r['psnr_cc'])} | {fmt(r['lpips'], '.3f')} | {fmt(r['train_psnr'])} | "
                      f"{r['num_gaussians']:,} | {fmt(r['train_seconds'], '.0f')} | {r['steps']} | {gains} | "
                      f"{others_cell} | {(r['code_revision'] or '-')[:10]} | {fmt(load[0] if load else None)} |")
-    lines += ["", f"Report made at {res['report']['code_revision'][:10]}. A learnt gain is the mean of a view's "
-              "three channel gains, in display values (the check's ratios are in linear light, about the "
-              "gain to the power 2.2).", ""]
+    lines += ["", f"Report made at {res['report']['code_revision'][:10]}. A learnt gain is what a view's "
+              "correction makes of a mid-grey (0.5), as a ratio, the mean over its three channels: gain and offset "
+              "share an exposure change. It is in display values; the check's ratios are in linear light (about "
+              "the display ratio to the power 2.2).", ""]
     return "\n".join(lines)
 
 

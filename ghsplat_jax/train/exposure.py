@@ -30,8 +30,10 @@ from ghsplat_jax.train.optim import adam_row_step
 
 log = logging.getLogger("ghsplat.train")
 
-# A training view whose learnt gain departs this far from 1 (any channel) is named in a warning.
-LARGE_GAIN = 1.15
+# A training view whose correction moves a mid-grey (0.5) this far from itself (x, any channel) is
+# named: the photos compensation matched. A 3x brighter photo (linear light) learnt gains of 1.1 and
+# offsets of +0.16 (the aloe's 01.jpg): gain and offset share the change.
+LARGE_CHANGE = 1.15
 
 
 @jax.tree_util.register_dataclass
@@ -79,13 +81,18 @@ def corrections_report(exposure: ExposureState, names: list[str]) -> list[dict]:
     return [dict(name=name, gain=np.exp(v[:3]).tolist(), offset=v[3:].tolist()) for name, v in zip(names, values)]
 
 
+def mid_grey_change(row: dict) -> list[float]:
+    """Per channel, what the correction makes of a mid-grey (0.5), as a ratio to it."""
+    return [(0.5 * g + b) / 0.5 for g, b in zip(row["gain"], row["offset"])]
+
+
 def is_large(row: dict) -> bool:
-    return max(abs(np.log(g)) for g in row["gain"]) > np.log(LARGE_GAIN)
+    return max(abs(np.log(max(c, 1e-6))) for c in mid_grey_change(row)) > np.log(LARGE_CHANGE)
 
 
 def corrections_summary(rows: list[dict]) -> dict:
     """metrics.json's `exposure_compensation`: the gains' range, the largest offset, the views
-    whose gain departs more than LARGE_GAIN from 1."""
+    whose correction moves a mid-grey more than LARGE_CHANGE from itself."""
     if not rows:
         return {"num_views": 0}
     gains = np.array([r["gain"] for r in rows])
@@ -95,9 +102,10 @@ def corrections_summary(rows: list[dict]) -> dict:
 
 
 def describe_large(rows: list[dict]) -> list[str]:
-    """Log (and return) a line for every training view whose gain departs far from 1: the photos
-    compensation matched (the model keeps the others' exposure)."""
-    messages = [f"view {r['name']}: exposure compensation matched it with gains "
+    """Log (and return) a line for every training view whose correction is large (`is_large`):
+    the photos compensation matched (the model keeps the others' exposure)."""
+    messages = [f"view {r['name']}: exposure compensation matched it (a mid-grey x "
+                f"{', '.join(f'{c:.2f}' for c in mid_grey_change(r))}) with gains "
                 f"{', '.join(f'{g:.2f}' for g in r['gain'])} (r, g, b) and offsets "
                 f"{', '.join(f'{b:+.3f}' for b in r['offset'])}; the model keeps the other photos' exposure"
                 for r in rows if is_large(r)]
