@@ -144,3 +144,16 @@ def test_run_writes_corrections_and_resume_keeps_them(tmp_path):
     summary = json.loads((out / "metrics.json").read_text())["exposure_compensation"]
     assert metrics["exposure_compensation"] == summary and summary["num_views"] == len(ds.train)
     assert np.isfinite(metrics["test"]["psnr"])
+    # Training views are scored under their learnt corrections, as training scored them: a large
+    # correction (made here) changes their score and no test view's.
+    from ghsplat_jax.eval.evaluate import by_view, evaluate
+    from ghsplat_jax.train.run_dir import load_run
+
+    config, surfels, _, _ = load_run(out)
+    saved = json.loads((out / "exposure_corrections.json").read_text())
+    for r in saved["views"]:
+        r["gain"], r["offset"] = [2.0, 2.0, 2.0], [0.3, 0.3, 0.3]
+    plain = evaluate(surfels, ds, config, tmp_path / "plain", progress=False)
+    corrected = evaluate(surfels, ds, config, tmp_path / "corrected", progress=False, train_exposure=by_view(saved))
+    assert corrected["train"]["psnr"] < plain["train"]["psnr"] - 3.0
+    assert corrected["test"]["psnr"] == plain["test"]["psnr"] == pytest.approx(metrics["test"]["psnr"], abs=1e-4)

@@ -68,13 +68,17 @@ def save_view_maps(folder: Path, name: str, out) -> None:
 
 def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = None, steps: int | None = None,
              save_renders: bool | None = None, progress: bool | None = None,
-             train_peak_rss_mb: float | None = None, extra: dict | None = None) -> dict:
+             train_peak_rss_mb: float | None = None, extra: dict | None = None,
+             train_exposure: dict | None = None) -> dict:
     """Render every test view and (up to config.eval_max_train_views) training view, with LPIPS on
     the test views when config.eval_lpips and its weights are installed, and depth and normal
     error where the dataset is a synth scene with ground truth (eval/geometry.py); write
     OUT/metrics.json and OUT/per_view.json (and renders under OUT/renders/test/); return metrics.
     peak_rss_mb is this process's peak, or the training process's when that was larger.
-    `extra`: more facts of the run for metrics.json (e.g. why a self-stopping run stopped)."""
+    `extra`: more facts of the run for metrics.json (e.g. why a self-stopping run stopped).
+    `train_exposure`: {training view name: its learnt exposure correction (exposure_corrections.json's
+    row)}, applied to that view's render before it is scored, as training scored it; every other
+    render is scored as it is."""
     import jax
     from tqdm.auto import tqdm
 
@@ -103,7 +107,11 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             jax.block_until_ready(out.rgb)
             dt = time.perf_counter() - t
             times.append(dt)
-            m = (image_metrics(out.rgb, v.image) | structure_metrics(out.rgb, v.image, v.alpha)
+            rgb = out.rgb
+            if split == "train" and v.name in (train_exposure or {}):
+                row = train_exposure[v.name]
+                rgb = np.asarray(rgb) * np.float32(row["gain"]) + np.float32(row["offset"])
+            m = (image_metrics(rgb, v.image) | structure_metrics(rgb, v.image, v.alpha)
                  | background_cover(out.alpha, v.alpha))
             if split == "test":
                 m |= colour_corrected_metrics(out.rgb, v.image)
@@ -251,12 +259,19 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         extra["pose_refinement"] = pose["summary"]
         dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, pose["views"], pose["scene_extent"]))
     exposure_file = run_dir / rd.EXPOSURE_NAME
-    if exposure_file.is_file():
+    exposure = None
+    if exposure_file.is_file():  # as train_and_evaluate: training views scored under their corrections
         import json
 
-        extra["exposure_compensation"] = json.loads(exposure_file.read_text())["summary"]
+        exposure = json.loads(exposure_file.read_text())
+        extra["exposure_compensation"] = exposure["summary"]
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,
-                    train_peak_rss_mb=meta.get("peak_rss_mb"), extra=extra)
+                    train_peak_rss_mb=meta.get("peak_rss_mb"), extra=extra, train_exposure=by_view(exposure))
+
+
+def by_view(corrections: dict | None) -> dict | None:
+    """{view name: row} of a corrections file's `views` (None: none)."""
+    return None if corrections is None else {r["name"]: r for r in corrections["views"]}
 
 
 def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, evaluate: bool = True,
@@ -286,7 +301,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     extra = {k: summary[k] for k in ("stop",) if k in summary} | {"machine": machine_info(),
                                                                    "code_revision": revision}
     extra |= make_strategy(config).report(result.strategy_state)  # e.g. the auto strategy's compaction
-    if result.exposure is not None:  # every render evaluated keeps the common exposure: only the summary
+    if result.exposure is not None:  # training views scored under their corrections, as training scored them
         extra["exposure_compensation"] = result.exposure["summary"]
     if result.pose is not None:  # the training views are evaluated at the poses the run refined them to
         from ghsplat_jax.train.pose import refine_views
@@ -295,7 +310,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
         dataset = dataclasses.replace(dataset, train=refine_views(dataset.train, result.pose["views"],
                                                                   result.pose["scene_extent"]))
     return _evaluate(result.surfels, dataset, config, out_dir, result.train_seconds, result.steps,
-                     extra=extra) | {"finished": True}
+                     extra=extra, train_exposure=by_view(result.exposure)) | {"finished": True}
 
 
 def stop_summary(rule: dict, steps: int, max_steps: int) -> dict:

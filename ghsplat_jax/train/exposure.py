@@ -8,8 +8,8 @@ render a view's photo is compared against is
 
     rgb' = exp(g) * rgb + b        (per channel: g log gains, b offsets, a 6-vector per view)
 
-so the surfels keep the capture's common exposure: every render outside the loss (test, held-out
-and training-view evaluation, the exported model) is the plain one. An L1 penalty on (g, b) in
+so the surfels keep the capture's common exposure: every other render (test and held-out views,
+the exported model) is the plain one; evaluation scores a training view under its correction. An L1 penalty on (g, b) in
 each view's loss holds the corrections at zero where the photos agree, so the common exposure is
 the median photo's. (With a squared penalty, one photo of four made 40% darker let the model and
 every other view's gain drift 3% darker: a mean, not a median.) Each view has its own Adam moments, updated on the steps
