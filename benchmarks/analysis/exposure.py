@@ -38,8 +38,9 @@ def run_record(run: Path) -> dict:
     corrections = run / "exposure_corrections.json"
     gains = {}
     if corrections.is_file():
-        gains = {r["name"]: statistics.fmean((0.5 * g + b) / 0.5 for g, b in zip(r["gain"], r["offset"]))
-                 for r in json.loads(corrections.read_text())["views"]}
+        from ghsplat_jax.train.exposure import mid_grey_change
+
+        gains = {r["name"]: statistics.fmean(mid_grey_change(r)) for r in json.loads(corrections.read_text())["views"]}
     return {"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed", 0),
             "compensation": bool(cfg.get("exposure_compensation", False)),
             **{k: test.get(k) for k in ("psnr", "psnr_cc", "ssim", "lpips")},

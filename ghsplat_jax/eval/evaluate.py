@@ -5,6 +5,7 @@ train_and_evaluate: one run trained and evaluated (`ghsplat train`, the experime
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -26,6 +27,7 @@ from ghsplat_jax.eval.metrics import (
     summarize,
 )
 from ghsplat_jax.io_utils import code_revision, device_name, machine_info
+from ghsplat_jax.train import exposure as exposure_mod
 from ghsplat_jax.train import run_dir as rd
 
 log = logging.getLogger("ghsplat.eval")
@@ -109,8 +111,7 @@ def evaluate(surfels, dataset, config, out_dir, train_seconds: float | None = No
             times.append(dt)
             rgb = out.rgb
             if split == "train" and v.name in (train_exposure or {}):
-                row = train_exposure[v.name]
-                rgb = np.asarray(rgb) * np.float32(row["gain"]) + np.float32(row["offset"])
+                rgb = exposure_mod.apply(rgb, exposure_mod.tone_of(train_exposure[v.name]))
             m = (image_metrics(rgb, v.image) | structure_metrics(rgb, v.image, v.alpha)
                  | background_cover(out.alpha, v.alpha))
             if split == "test":
@@ -251,8 +252,6 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
         "evaluated": {"machine": machine_info(), "code_revision": code_revision()}}
     pose_file = run_dir / rd.POSE_NAME
     if pose_file.is_file():  # as train_and_evaluate: training views at their refined poses
-        import json
-
         from ghsplat_jax.train.pose import refine_views
 
         pose = json.loads(pose_file.read_text())
@@ -261,8 +260,6 @@ def evaluate_run(run_dir, progress: bool = True) -> dict:
     exposure_file = run_dir / rd.EXPOSURE_NAME
     exposure = None
     if exposure_file.is_file():  # as train_and_evaluate: training views scored under their corrections
-        import json
-
         exposure = json.loads(exposure_file.read_text())
         extra["exposure_compensation"] = exposure["summary"]
     return evaluate(surfels, dataset, config, out_dir, seconds, steps, progress=progress,

@@ -45,8 +45,7 @@ def colour_corrected_metrics(rendered, target) -> dict[str, float]:
         design = np.stack([rendered[:, c], np.ones(len(rendered))], axis=1)
         coef = np.linalg.lstsq(design, target[:, c], rcond=None)[0]
         fitted[:, c] = design @ coef
-    mse = float(np.mean((np.clip(fitted, 0.0, 1.0) - target) ** 2))
-    return {"psnr_cc": float(-10.0 * np.log10(max(mse, 1e-20)))}
+    return {"psnr_cc": float(losses.psnr(np.clip(fitted, 0.0, 1.0), target))}
 
 
 def lpips_metrics(rendered, target) -> dict[str, float]:

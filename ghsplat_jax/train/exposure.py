@@ -81,6 +81,11 @@ def corrections_report(exposure: ExposureState, names: list[str]) -> list[dict]:
     return [dict(name=name, gain=np.exp(v[:3]).tolist(), offset=v[3:].tolist()) for name, v in zip(names, values)]
 
 
+def tone_of(row: dict) -> np.ndarray:
+    """The 6-vector `apply` takes, from a corrections report's row (gains and offsets)."""
+    return np.concatenate([np.log(row["gain"]), row["offset"]]).astype(np.float32)
+
+
 def mid_grey_change(row: dict) -> list[float]:
     """Per channel, what the correction makes of a mid-grey (0.5), as a ratio to it."""
     return [(0.5 * g + b) / 0.5 for g, b in zip(row["gain"], row["offset"])]
