@@ -22,6 +22,7 @@ from ghsplat_jax.train.resolution import (
 )
 from ghsplat_jax.train.stopping import PlateauRule
 from ghsplat_jax.train.strategies.auto import level_gain, start_hold
+from ghsplat_jax.train.trainer import hold_out
 
 
 def test_plateau_rule_anneals_once_then_stops_and_remembers_the_best():
@@ -250,6 +251,7 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_f
     checks = {r["step"]: r for r in rows if "val_psnr" in r}
     assert max(checks) == stop["stopped_at"] and checks[stop["best_step"]]["val_psnr"] == stop["best_val_psnr"]
     assert stop["best_val_psnr"] == max(r["val_psnr"] for r in checks.values())
+    assert stop["validation_views"] == [v.name for v in hold_out(ds.train, cfg.val_hold_every)[1]] != []
     # The first steps trained on half-size images: the schedule reached full size at step 20.
     assert (tmp_path / "run" / "point_cloud.ply").is_file() and math.isfinite(metrics["test"]["psnr"])
     assert metrics["num_gaussians"] > 0 and metrics["recipe"] == "auto" and metrics["strategy"] == "auto"
@@ -368,3 +370,11 @@ def test_window_training_visits_every_window_of_every_view_once_an_epoch_at_full
     assert len(seen) == 4 * n
     result = train(cfg, tmp_path / "run", dataset=ds)
     assert result.steps == 60 and np.isfinite(np.asarray(result.surfels.means)).all()
+
+
+def test_validation_holds_out_views_only_when_enough_train():
+    train, val = hold_out(list(range(16)), 8)
+    assert val == [4, 12] and sorted(train + val) == list(range(16))
+    # lund_door's 10 training views: one could be spared, too few to judge by; nothing is held out.
+    assert hold_out(list(range(10)), 8) == (list(range(10)), [])
+    assert hold_out(list(range(9)), 3) == (list(range(9)), [])  # 3 held out would leave 6 to train

@@ -101,7 +101,7 @@ def _paint_points(root, gains: dict[int, float], seed=0):
     return root
 
 
-def test_photos_exposed_unlike_the_rest_are_named_with_their_ratio(tmp_path):
+def test_photos_exposed_unlike_the_rest_are_named_with_their_ratio(tmp_path, monkeypatch):
     even = load_dataset(_paint_points(_write_model(tmp_path / "even", points=120), {}), split="all")
     assert exposure_outliers(even) == [] and exposure_warning(even, "scene") is None
     odd = load_dataset(_paint_points(_write_model(tmp_path / "odd", points=120), {2: 1.5, 3: 1.4}), split="all")
@@ -123,3 +123,11 @@ def test_photos_exposed_unlike_the_rest_are_named_with_their_ratio(tmp_path):
                                     test=[v for v in odd.train if v.name in ("002.png", "003.png")])
     assert not with_flagged_exposure(asked, test_only).exposure_compensation  # flagged test photos only
     assert "Exposure compensation is on" in exposure_warning(odd, "scene", compensating=True)
+    # A run asks twice (whether to compensate, then to warn); the exposures are fitted once.
+    from ghsplat_jax.data import exposure
+
+    fits = []
+    monkeypatch.setattr(exposure, "fit_exposures", lambda *a, **k: fits.append(1) or np.zeros(k["num_views"]))
+    again = dataclasses.replace(odd)
+    assert with_flagged_exposure(asked, again) is asked and exposure_warning(again, "scene") is None
+    assert len(fits) == 1

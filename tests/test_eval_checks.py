@@ -84,6 +84,10 @@ def test_diagnose_warns_of_outliers_overfitting_and_a_missing_subject(caplog):
     stopped = diagnose(metrics | {"stop": {"best_val_psnr": 40.09}}, rows, where="RUN")
     assert "held out to stop the run scored 40.09 dB" in stopped["warnings"][1]
     assert "--recipe auto" not in stopped["warnings"][1]
+    # One whose checks read the training views (too few to hold some out) says that is why it missed it.
+    blind = diagnose(metrics | {"stop": {"best_val_psnr": 40.09, "validation_views": []}}, rows, where="RUN")
+    assert "too few training views to hold some out" in blind["warnings"][1]
+    assert "held out to stop the run scored" not in blind["warnings"][1]
     calm = diagnose({"train": {"psnr": 30.0}, "test": {"psnr": 28.0}}, rows[:5])
     assert calm["warnings"] == [] and calm["train_test_gap_db"] == 2.0
 

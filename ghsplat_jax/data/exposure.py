@@ -20,6 +20,7 @@ at 0.88-1.04. MAX_RATIO = 1.3 leaves a wide margin both ways.
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -27,6 +28,7 @@ from ghsplat_jax.data.tracks import read_model, view_tracks
 
 MAX_RATIO = 1.3       # warn about a photo exposed more than this apart from the capture's median
 MIN_POINTS = 20       # shared points a photo needs for its exposure to be told
+_FOUND: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # dataset -> {max_ratio: outliers}
 _LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 _DARK, _CLIPPED = 2e-3, 0.98  # observations too dark to scale, or clipped in a channel, are left out
 
@@ -83,7 +85,15 @@ def observations(dataset, views) -> tuple[np.ndarray, np.ndarray, np.ndarray] | 
 def exposure_outliers(dataset, max_ratio: float = MAX_RATIO) -> list[tuple[str, str, float]] | None:
     """(split, name, exposure ratio to the capture's median) of the photos (training and test,
     every one: a photo left out would pass unseen) exposed more than `max_ratio` apart, the
-    largest departure first; None where it cannot be told (no tracks: see the module docstring)."""
+    largest departure first; None where it cannot be told (no tracks: see the module docstring).
+    Found once per dataset object: a training run asks twice (to warn, and whether to compensate)."""
+    found = _FOUND.setdefault(dataset, {})
+    if max_ratio not in found:
+        found[max_ratio] = _find_outliers(dataset, max_ratio)
+    return found[max_ratio]
+
+
+def _find_outliers(dataset, max_ratio: float) -> list[tuple[str, str, float]] | None:
     views = [("train", v) for v in dataset.train] + [("test", v) for v in dataset.test]
     obs = observations(dataset, [v for _, v in views])
     if obs is None:

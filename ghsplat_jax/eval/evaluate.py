@@ -181,8 +181,14 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
     if gap is not None and gap > gap_db:
         found = (f"the training views' PSNR ({train:.2f} dB) exceeds the test views' ({test:.2f} dB) by {gap:.1f} dB "
                  f"(more than {gap_db:g}): the model over-fits the training views. ")
-        val = (metrics.get("stop") or {}).get("best_val_psnr")
-        if val is not None:  # a self-stopping run: its held-out views did not see the over-fitting
+        stop = metrics.get("stop") or {}
+        val = stop.get("best_val_psnr")
+        if val is not None and stop.get("validation_views") == []:  # nothing held out: blind to over-fitting
+            warn(found + f"The run had too few training views to hold some out, so its stop rule read the "
+                 f"training views ({val:.2f} dB at its best) and could not see the over-fitting: capture more "
+                 "views (the checks hold out every val_hold_every-th training view once two can be spared with 8 "
+                 "left to train)")
+        elif val is not None:  # a self-stopping run: its held-out views did not see the over-fitting
             warn(found + f"The views held out to stop the run scored {val:.2f} dB, so they lie closer to the "
                  "training views than the test views do: capture more views between, or around, where the test "
                  "views look from")
@@ -291,7 +297,7 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
     summary = {"num_gaussians": result.num_surfels, "train_seconds": result.train_seconds, "steps": result.steps,
                "finished": result.finished}
     if result.stop is not None:
-        summary["stop"] = stop_summary(result.stop, result.steps, config.resolved().steps)
+        summary["stop"] = stop_summary(result.stop, result.steps, config.resolved().steps, result.held_out)
     if not evaluate or not result.finished:
         return summary
     # Where and with what code it trained (the training seconds depend on both), from this process.
@@ -310,13 +316,15 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
                      extra=extra, train_exposure=by_view(result.exposure)) | {"finished": True}
 
 
-def stop_summary(rule: dict, steps: int, max_steps: int) -> dict:
-    """What metrics.json says of a run with validation: why and when it stopped, and the step
-    whose model it kept."""
+def stop_summary(rule: dict, steps: int, max_steps: int, held_out: list[str] | None = None) -> dict:
+    """What metrics.json says of a run with validation: why and when it stopped, the step whose
+    model it kept, and the views its checks held out (`held_out`; [] when they read the training
+    views, as they do where too few train to spare some)."""
     stopped = rule.get("stopped_at") is not None
     return {"reason": rule["reason"] if stopped else f"the schedule ended at step {max_steps}",
             "stopped_at": int(rule["stopped_at"]) if stopped else int(steps), "best_step": int(rule["best_step"]),
-            "best_val_psnr": rule["best_psnr"], "annealed_at": rule.get("annealed_at")}
+            "best_val_psnr": rule["best_psnr"], "annealed_at": rule.get("annealed_at"),
+            "validation_views": held_out}
 
 
 _evaluate = evaluate  # train_and_evaluate's `evaluate` flag shadows the function's name

@@ -85,6 +85,8 @@ class TrainResult:
     stop: dict | None = None  # the stop rule's state (runs with validation): best step, why it stopped
     pose: dict | None = None  # pose refinement: what pose_corrections.json holds
     exposure: dict | None = None  # exposure compensation: what exposure_corrections.json holds
+    held_out: list[str] | None = None  # the validation views' names (runs with validation; [] when the
+    #                                    training views were too few to hold any out and the checks read them)
 
     @property
     def surfels(self):
@@ -213,8 +215,10 @@ class TrainingSession:
             dataset.train, [])
         if config.val_every and not self.val_views:
             log.warning("%s: too few training views (%d) to hold some out for validation; the stop rule reads the "
-                        "training views' PSNR instead", config.data, len(dataset.train))
+                        "training views' PSNR instead, so it stops when they are learnt and cannot see over-fitting",
+                        config.data, len(dataset.train))
             self.val_views = list(dataset.train)
+        self.held_out = [v.name for v in self.val_views if v not in train_views]
         self.view_names = [v.name for v in train_views]
         self.images, self.Ks, self.w2cs, self.width, self.height = stack_views(
             train_views, with_alpha=config.normal_loss_alpha_mask and config.lambda_normal > 0)
@@ -684,7 +688,7 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
         exposure["summary"]["matched"] = exposure_mod.describe_large(exposure["views"])
     result = TrainResult(session.state, step, total, session.rollbacks, out, session.initial_count,
                          jax.device_get(session.sstate), finished, session.stop_state if config.val_every else None,
-                         pose, exposure)
+                         pose, exposure, session.held_out if config.val_every else None)
     if finished:
         from ghsplat_jax.data.ply import save_ply
 
