@@ -51,6 +51,9 @@ def test_table1_and_results_tables(tmp_path):
     assert table[1]["segment"] == "seg_b" and float(table[1]["psnr"]) == 28.25 and table[1]["num_gaussians"] == "410000"
     paths = write_results(rows, tmp_path / "report")
     assert all(p.is_file() for p in paths)
+    assert "colour-corrected" not in paths[0].read_text()  # no run has the metric: no empty column
+    write_results([dict(rows[0], psnr_cc=31.25)] + rows[1:], tmp_path / "report_cc")
+    assert "| seg_a |  | test | 30.50 | 31.25 |" in (tmp_path / "report_cc" / "results.md").read_text()
     charts = write_charts(rows, tmp_path / "report", "t")
     assert {p.name for p in charts} == {"psnr_vs_time.png", "psnr_vs_count.png"}
     assert all(p.read_bytes()[:4] == b"\x89PNG" for p in charts)

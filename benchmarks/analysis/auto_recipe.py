@@ -130,7 +130,8 @@ def auto_runs(runs_root: Path, defaults: dict | None = None) -> list[dict]:
         stop = m.get("stop") or {}
         out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"),
                     "settings": (defaults or {}) | flat(cfg),
-                    **{k: test.get(k) for k in ("psnr", "l1", "ssim", "lpips", "depth_abs_err", "normal_err_deg")},
+                    **{k: test.get(k) for k in ("psnr", "psnr_cc", "l1", "ssim", "lpips", "depth_abs_err",
+                                                 "normal_err_deg")},
                     "train_psnr": (m.get("train") or {}).get("psnr"), "num_gaussians": m.get("num_gaussians"),
                     "compacted_from": (m.get("compaction") or {}).get("before"),
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
@@ -419,13 +420,15 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   f"{', '.join(a.get('differs_in') or []) or '-'} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
-    lines += ["", "## Every run", "",
-              "| scene | variant | seed | test PSNR | L1 | SSIM | LPIPS | depth err (m) | normal err (deg) | "
-              "train PSNR | surfels | train s | steps | kept step | load at the end | code | why it stopped |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    cc = any(r.get("psnr_cc") is not None for r in runs)  # the metric is newer than some runs
+    heads = ["scene", "variant", "seed", "test PSNR"] + ["colour-corrected PSNR"] * cc + [
+        "L1", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)", "train PSNR", "surfels", "train s", "steps",
+        "kept step", "load at the end", "code", "why it stopped"]
+    lines += ["", "## Every run", "", "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
     for r in runs:
         load = (r.get("machine") or {}).get("load_average")
-        lines.append(f"| {r['scene']} | {r['variant']} | {r['seed']} | {fmt(r['psnr'])} | {fmt(r['l1'], '.4f')} | "
+        lines.append(f"| {r['scene']} | {r['variant']} | {r['seed']} | {fmt(r['psnr'])} | "
+                     + (f"{fmt(r.get('psnr_cc'))} | " if cc else "") + f"{fmt(r['l1'], '.4f')} | "
                      f"{fmt(r['ssim'], '.3f')} | {fmt(r.get('lpips'), '.3f')} | "
                      f"{fmt(r.get('depth_abs_err'), '.4f')} | {fmt(r.get('normal_err_deg'), '.1f')} | "
                      f"{fmt(r['train_psnr'])} | {surfels_cell(r)} | "

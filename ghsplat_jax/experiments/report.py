@@ -15,7 +15,7 @@ from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
 
 RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
-RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "lpips",
+RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "psnr_cc", "structure_psnr", "l1", "ssim", "lpips",
                   "depth_abs_err", "normal_err_deg", "num_gaussians", "train_seconds", "step_seconds", "steps",
                   "render_seconds_per_view", "device", "status", "run_dir")
 
@@ -31,7 +31,8 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
     s = m[split]
     return {
         "experiment": experiment, "scene": scene or run_dir.name, "variant": variant or "", "split": split,
-        "psnr": s.get("psnr"), "structure_psnr": s.get("structure_psnr"), "l1": s.get("l1"), "ssim": s.get("ssim"),
+        "psnr": s.get("psnr"), "psnr_cc": s.get("psnr_cc"), "structure_psnr": s.get("structure_psnr"),
+        "l1": s.get("l1"), "ssim": s.get("ssim"),
         "lpips": s.get("lpips"), "depth_abs_err": s.get("depth_abs_err"), "normal_err_deg": s.get("normal_err_deg"),
         "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
@@ -45,7 +46,8 @@ def collect_runs(run_dirs) -> list[dict]:
     return [r for r in rows if r is not None]
 
 
-_FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "structure_psnr": "{:.2f}", "ssim": "{:.3f}", "lpips": "{:.3f}",
+_FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "psnr_cc": "{:.2f}", "structure_psnr": "{:.2f}", "ssim": "{:.3f}",
+            "lpips": "{:.3f}",
             "num_gaussians": "{:,}",
             "train_seconds": "{:.0f}",
             "step_seconds": "{:.3f}",
@@ -129,15 +131,17 @@ def write_table1(rows: list[dict], folder, title: str = "Table 1") -> list[Path]
 def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path]:
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
-    cols = ("scene", "variant", "split", "psnr", "structure_psnr", "l1", "ssim", "lpips", "num_gaussians",
+    cols = ("scene", "variant", "split", "psnr", "psnr_cc", "structure_psnr", "l1", "ssim", "lpips", "num_gaussians",
             "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device", "status")
     rows = [dict(r, status=r.get("status") or "finished") for r in rows]
     stopped = _unfinished(rows)
     note = (f"\n{len(stopped)} of {len(rows)} runs have not finished (status): their numbers are not final.\n"
             if stopped else "")
+    heads = ("scene", "variant", "split", "PSNR (dB)", "colour-corrected PSNR", "structure PSNR", "L1", "SSIM",
+             "LPIPS", "Gaussians", "train s", "median step s", "steps", "render s/view", "device", "status")
+    if all(r.get("psnr_cc") is None for r in rows):  # runs evaluated before the metric existed
+        cols, heads = zip(*[(c, h) for c, h in zip(cols, heads) if c != "psnr_cc"])
     with atomic_write(md, "w") as fh:
-        heads = ("scene", "variant", "split", "PSNR (dB)", "structure PSNR", "L1", "SSIM", "LPIPS", "Gaussians",
-                 "train s", "median step s", "steps", "render s/view", "device", "status")
         fh.write(f"# {title}\n\n" + markdown_table(rows, cols, heads) + note)
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
