@@ -4,8 +4,8 @@ number edited by hand (or a results file changed without regenerating) fails her
 
 Generators checked (each renders from committed files only, no run folders):
 - benchmarks/analysis/table1_readme.py -> benchmarks/results/table1_greenhouse/README.md
-- benchmarks/analysis/auto_recipe.py   -> benchmarks/results/auto_recipe/README.md and
-  benchmarks/results/auto_recipe/real/README.md (each from its results.json)
+- benchmarks/analysis/auto_recipe.py   -> benchmarks/results/auto_recipe/README.md,
+  benchmarks/results/auto_recipe/real/README.md and .../table1_384/README.md (each from its results.json)
 - benchmarks/robustness/sfm_crosscheck.py -> benchmarks/results/sfm_crosscheck/README.md (from its results.json)
 - benchmarks/analysis/exposure.py      -> benchmarks/results/exposure_real/README.md (from its results.json)
 
@@ -58,12 +58,13 @@ def test_auto_recipe_readme_is_generated(auto_recipe):
     assert not diff, "auto_recipe/README.md differs from its results.json:\n" + diff
 
 
-def test_auto_real_readme_is_generated(auto_recipe):
-    out = RESULTS / "auto_recipe" / "real"
+@pytest.mark.parametrize("folder", ["real", "table1_384"])
+def test_auto_recipe_subfolder_readme_is_generated(auto_recipe, folder):
+    out = RESULTS / "auto_recipe" / folder
     if not (out / "results.json").is_file():
-        pytest.skip("no auto_recipe/real results committed")
+        pytest.skip(f"no auto_recipe/{folder} results committed")
     diff = auto_recipe.check(out)
-    assert not diff, "auto_recipe/real/README.md differs from its results.json:\n" + diff
+    assert not diff, f"auto_recipe/{folder}/README.md differs from its results.json:\n" + diff
 
 
 def test_exposure_readme_is_generated():
