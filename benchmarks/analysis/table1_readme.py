@@ -49,6 +49,7 @@ def load(results: Path = RESULTS) -> dict:
     return {
         "results": read(folder / "results.json"),
         "real": read(real) if (real := results / "auto_recipe" / "real" / "results.json").is_file() else None,
+        "full_size": read(f) if (f := results / "auto_recipe" / "table1_384" / "results.json").is_file() else None,
         "segments": read(folder / "segments.json"),
         "notes": read(folder / "notes.json"),
         "pareto": read(folder / "pareto.json"),
@@ -157,6 +158,20 @@ def auto_section(rows: list[dict]) -> list[str]:
             "scene's frame by its SfM's similarity onto the exact cameras, so the SfM's pose error is in them). "
             "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md).",
             ""] + seed_table(auto, "segment") + [""]
+
+
+def full_size_section(full: dict | None) -> list[str]:
+    """The auto recipe at the photos' own 384x288 (benchmarks/results/auto_recipe/table1_384/results.json)."""
+    runs = [r for r in (full or {}).get("runs", []) if is_seed(r["variant"]) and r.get("psnr") is not None]
+    if not runs:
+        return []
+    return ["## The auto recipe at the photos' own 384x288", "",
+            "The same recipe on the same segments' photos at their own size, 4x the pixels of the tables above "
+            "(`ghsplat run experiments/table1_greenhouse.toml --preset auto_384`). No default or compact rows: each "
+            "would need a default run at 384x288 first, hours a segment on this CPU. One row per segment with a "
+            "finished run; mean ± sample sd over the seeds that finished; per-run rows and curves: "
+            "[../auto_recipe/table1_384/README.md](../auto_recipe/table1_384/README.md).", ""] + seed_table(
+        runs, "segment") + [""]
 
 
 def real_section(real: dict | None) -> list[str]:
@@ -465,6 +480,7 @@ def render(data: dict) -> str:
     out.append("")
 
     out += auto_section(rows)
+    out += full_size_section(data.get("full_size"))
     out += real_section(data.get("real"))
 
     # -------- SfM
