@@ -146,9 +146,14 @@ def seed_table(rows: list[dict], first: str) -> list[str]:
                   "Gaussians", "training s"], body)
 
 
+def finished_seeds(rows: list[dict]) -> list[dict]:
+    """The rows of the auto recipe's seeds that have a test PSNR (a finished, evaluated run)."""
+    return [r for r in rows if is_seed(r.get("variant", "")) and r.get("psnr") is not None]
+
+
 def auto_section(rows: list[dict]) -> list[str]:
     """The auto recipe's rows, per segment: mean ± sd over its seeds of the test metrics."""
-    auto = [r for r in rows if is_seed(r.get("variant", "")) and r.get("psnr") is not None]
+    auto = finished_seeds(rows)
     if not auto:
         return []
     return ["## The auto recipe (self-sizing, self-stopping)", "",
@@ -162,7 +167,7 @@ def auto_section(rows: list[dict]) -> list[str]:
 
 def full_size_section(full: dict | None) -> list[str]:
     """The auto recipe at the photos' own 384x288 (benchmarks/results/auto_recipe/table1_384/results.json)."""
-    runs = [r for r in (full or {}).get("runs", []) if is_seed(r["variant"]) and r.get("psnr") is not None]
+    runs = finished_seeds((full or {}).get("runs", []))
     if not runs:
         return []
     return ["## The auto recipe at the photos' own 384x288", "",
@@ -176,7 +181,7 @@ def full_size_section(full: dict | None) -> list[str]:
 
 def real_section(real: dict | None) -> list[str]:
     """The auto recipe on real captures (benchmarks/results/auto_recipe/real/results.json), per scene."""
-    runs = [r for r in (real or {}).get("runs", []) if is_seed(r["variant"]) and r.get("psnr") is not None]
+    runs = finished_seeds((real or {}).get("runs", []))
     if not runs:
         return []
     machines = sorted({(r.get("machine") or {}).get("processor", "unrecorded") for r in runs})
