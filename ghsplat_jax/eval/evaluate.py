@@ -184,10 +184,12 @@ def diagnose(metrics: dict, rows: list[dict], where="", gap_db: float = TRAIN_TE
         stop = metrics.get("stop") or {}
         val = stop.get("best_val_psnr")
         if val is not None and stop.get("validation_views") == []:  # nothing held out: blind to over-fitting
+            from ghsplat_jax.train.trainer import MIN_HELD_OUT, MIN_LEFT_TO_TRAIN
+
             warn(found + f"The run had too few training views to hold some out, so its stop rule read the "
                  f"training views ({val:.2f} dB at its best) and could not see the over-fitting: capture more "
-                 "views (the checks hold out every val_hold_every-th training view once two can be spared with 8 "
-                 "left to train)")
+                 f"views (the checks hold out every val_hold_every-th training view once {MIN_HELD_OUT} can be "
+                 f"spared with {MIN_LEFT_TO_TRAIN} left to train)")
         elif val is not None:  # a self-stopping run: its held-out views did not see the over-fitting
             warn(found + f"The views held out to stop the run scored {val:.2f} dB, so they lie closer to the "
                  "training views than the test views do: capture more views between, or around, where the test "

@@ -166,12 +166,16 @@ def _jsonable(d: dict) -> dict:
 FEW_TRAIN_VIEWS = 10
 
 
+MIN_HELD_OUT, MIN_LEFT_TO_TRAIN = 2, 8  # a validation split smaller, or leaving fewer, holds nothing out
+
+
 def hold_out(views: list, every: int) -> tuple[list, list]:
     """(training views, validation views): every `every`-th view from the middle of the first
     stride on (so it does not line up with a test split that takes every n-th from the first),
-    and none when fewer than two would be held out or fewer than 8 would train."""
+    and none when fewer than MIN_HELD_OUT would be held out or fewer than MIN_LEFT_TO_TRAIN would
+    train."""
     picked = set(range(every // 2, len(views), every))
-    if len(picked) < 2 or len(views) - len(picked) < 8:
+    if len(picked) < MIN_HELD_OUT or len(views) - len(picked) < MIN_LEFT_TO_TRAIN:
         return list(views), []
     return [v for i, v in enumerate(views) if i not in picked], [v for i, v in enumerate(views) if i in picked]
 
