@@ -127,7 +127,7 @@ def test_level_gain_nets_out_the_time_trend_per_doubling():
     assert level_gain((1000, 2000, 20.0), (2000, 2000, 21.0), trend=0.0) == -math.inf  # no growth: nothing bought
 
 
-def _growth_decisions(checks, width=400, height=400, early_until=0):
+def _growth_decisions(checks, width=400, height=400, early_until=0, **settings):
     """Feed (count, val_psnr, train_scale) checks, 250 steps apart, to the auto strategy's hook (the
     checks at reduced resolution or up to step `early_until` marked early, as the trainer marks
     them); a level's growth ends (the hold begins) where a check's count reaches the level's
@@ -136,7 +136,7 @@ def _growth_decisions(checks, width=400, height=400, early_until=0):
 
     from ghsplat_jax.train.strategies import make_strategy
 
-    strategy = make_strategy(TrainConfig().replace(recipe="auto"))
+    strategy = make_strategy(TrainConfig().replace(recipe="auto", **{f"strategy.{k}": v for k, v in settings.items()}))
     sstate, ctx, frozen = strategy.init_state(100), SimpleNamespace(width=width, height=height), []
     for step, (count, psnr, scale) in enumerate(checks, start=1):
         target = int(sstate["level_target"])
@@ -169,6 +169,53 @@ def test_growth_rule_judges_levels_net_of_the_time_trend():
     frozen, _ = _growth_decisions(FIRST_LEVEL + [(20000, 27.5, 1), (20000, 27.55, 1), (20000, 29.6, 1)],
                                   width=100, height=100)
     assert frozen == [20000]
+
+
+def test_shed_gain_is_the_validation_loss_without_the_least_weighted_surfels_per_doubling(monkeypatch):
+    from types import SimpleNamespace
+
+    import jax.numpy as jnp
+    from raster_scenes import random_scene
+
+    from ghsplat_jax.train import optim
+    from ghsplat_jax.train.state import new_state, pad_params
+    from ghsplat_jax.train.strategies import auto
+
+    params, active = pad_params(random_scene(8, seed=0, degree=0), 16)
+    state = new_state(params, active, optim.make_optimizers(TrainConfig().replace(sh_degree=0)))
+    weight = jnp.zeros(16).at[:8].set(jnp.array([5.0, 0.1, 3.0, 0.2, 4.0, 0.3, 6.0, 0.4]))
+    monkeypatch.setattr(auto, "accumulated_weights", lambda ctx, s: weight)
+    # A validation score that each live surfel raises by its weight: what the model loses without
+    # some of them is their weight.
+    ctx = SimpleNamespace(validate=lambda s: 20.0 + float(jnp.sum(jnp.where(s.active, weight, 0.0))))
+    assert auto.shed_gain(ctx, state, 4) == pytest.approx(1.0)  # the 4 lightest: 0.1 + 0.2 + 0.3 + 0.4, one doubling
+    assert auto.shed_gain(ctx, state, 6) == pytest.approx((1.0 + 3.0 + 4.0) / 2)  # two doublings: 8 -> 2
+    assert auto.shed_gain(ctx, state, 0) == -math.inf  # the count did not grow
+    assert int(state.num_active()) == 8  # judged, not removed
+
+
+def test_shed_judge_sheds_the_level_it_judges(monkeypatch):
+    from ghsplat_jax.train.strategies import auto
+
+    sheds = []
+
+    def fake_gain(ctx, state, shed, value):
+        sheds.append(shed)
+        return value
+
+    # The first level judged sheds half of what grew before full resolution; 0.8 dB per doubling
+    # is worth it, and the next level grows to twice the count.
+    monkeypatch.setattr(auto, "shed_gain", lambda c, s, shed: fake_gain(c, s, shed, 0.8))
+    frozen, sstate = _growth_decisions(FIRST_LEVEL, level_judge="shed")
+    assert frozen == [] and sheds == [5000] and int(sstate["level_target"]) == 20000
+    # The next level sheds what it added; 0.3 dB per doubling freezes the count. No time trend
+    # enters: the same checks with a steep hold (1.2 dB per 1,000 steps) read the same.
+    monkeypatch.setattr(auto, "shed_gain", lambda c, s, shed: fake_gain(c, s, shed, 0.8 if shed == 5000 else 0.3))
+    frozen, sstate = _growth_decisions(FIRST_LEVEL + [(20000, 27.0, 1), (20000, 27.3, 1), (20000, 27.6, 1)],
+                                       level_judge="shed")
+    assert frozen == [20000] and sheds[-1] == 10000 and int(sstate["frozen_at"]) == 2000
+    with pytest.raises(ValueError, match="level_judge"):
+        _growth_decisions(FIRST_LEVEL, level_judge="guess")
 
 
 def test_early_checks_judge_no_level_even_at_full_resolution():

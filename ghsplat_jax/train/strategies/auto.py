@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 
 from ghsplat_jax.train import densify
-from ghsplat_jax.train.compaction import compact_model
+from ghsplat_jax.train.compaction import compact_model, free_slots, lowest_mask
 from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
 from ghsplat_jax.train.strategies.base import accumulated_weights, register
 from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round
@@ -51,6 +51,7 @@ from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_r
 log = logging.getLogger("ghsplat.train")
 
 GROWTH_WEIGHTS = ("error", "opacity")
+LEVEL_JUDGES = ("trend", "shed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +67,10 @@ class AutoSettings(MCMCSettings):
             first and the last give the time trend).
         growth_weight: "error" draws new surfels by opacity x mean projected-centre gradient,
             "opacity" by opacity alone (3DGS-MCMC).
+        level_judge: how a level's gain is read at its hold's end. "trend": the validation PSNR
+            gained since the previous level, less the hold's time trend; "shed": the validation
+            PSNR the model loses, at the same step, without the level's share of its surfels (the
+            least blending weight over the training views), which no time trend enters.
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
         ceiling_per_pixel: the ceiling when max_surfels is 0.
@@ -82,6 +87,7 @@ class AutoSettings(MCMCSettings):
     level_doublings: float = 1.0
     hold_checks: int = 3
     growth_weight: str = "error"
+    level_judge: str = "trend"
     ceiling_per_pixel: float = 2.0
     compact: bool = True
     compact_max_loss_db: float = 0.05
@@ -99,6 +105,8 @@ class AutoSettings(MCMCSettings):
             raise ValueError(f"hold_checks must be >= 2 (the time trend needs two checks), got {self.hold_checks}")
         if self.growth_weight not in GROWTH_WEIGHTS:
             raise ValueError(f"growth_weight must be one of {GROWTH_WEIGHTS}, got {self.growth_weight!r}")
+        if self.level_judge not in LEVEL_JUDGES:
+            raise ValueError(f"level_judge must be one of {LEVEL_JUDGES}, got {self.level_judge!r}")
         if not self.ceiling_per_pixel > 0:
             raise ValueError(f"ceiling_per_pixel must be positive, got {self.ceiling_per_pixel}")
         if not self.compact_max_loss_db >= 0:
@@ -136,6 +144,17 @@ def level_gain(prev: tuple[int, int, float], now: tuple[int, int, float], trend:
     if doublings <= 0:
         return -math.inf  # the count did not grow (a ceiling): nothing bought
     return (now[2] - prev[2] - max(trend, 0.0) * (now[0] - prev[0])) / doublings
+
+
+def shed_gain(ctx, state: TrainState, shed: int) -> float:
+    """Validation PSNR per doubling of the count that the model loses, as it stands, without its
+    `shed` live surfels of least blending weight over the training views (nothing retrained)."""
+    count = state.num_active()
+    if not 0 < shed < count:
+        return -math.inf  # the count did not grow (a ceiling): nothing bought
+    weight = accumulated_weights(ctx, state)
+    without = free_slots(state, lowest_mask(state.active, weight, jnp.int32(shed)))
+    return (ctx.validate(state) - ctx.validate(without)) / math.log2(count / (count - shed))
 
 
 def start_hold(sstate: dict) -> dict:
@@ -215,16 +234,23 @@ class AutoStrategy(MCMCStrategy):
         sstate = dict(sstate, hold_seen=jnp.int32(seen))
         if seen < self.settings.hold_checks:
             return sstate, {}
-        return self.judge_level(ctx, sstate, (it, state.num_active(), psnr))
+        return self.judge_level(ctx, state, sstate, (it, state.num_active(), psnr))
 
-    def judge_level(self, ctx, sstate, now: tuple[int, int, float]):
+    def judge_level(self, ctx, state, sstate, now: tuple[int, int, float]):
         """At a hold's end: grow the next level, or freeze the count (see the module docstring)."""
         s, (it, count, psnr) = self.settings, now
-        first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
-        trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
         prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
         at_ceiling = count >= self.ceiling(ctx, sstate)
-        gain = level_gain(prev, now, trend) if prev[1] else None
+        if s.level_judge == "shed":
+            # The first level judged sheds one doubling: the count grown before full resolution.
+            shed = count - prev[1] if prev[1] else count // 2
+            gain = None if at_ceiling else shed_gain(ctx, state, shed)
+            reading = f"without the {shed} surfels of least weight"
+        else:
+            first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
+            trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
+            gain = level_gain(prev, now, trend) if prev[1] else None
+            reading = f"net of {trend * 1000:.2f} dB per 1000 steps at a fixed count"
         sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
                       checked_psnr=jnp.float32(psnr))
         if at_ceiling or (gain is not None and gain < s.min_gain_db):
@@ -233,16 +259,15 @@ class AutoStrategy(MCMCStrategy):
             elif gain == -math.inf:
                 why = f"the count did not grow since the last level ({prev[1]} -> {count} surfels)"
             else:
-                why = (f"{gain:.2f} dB of validation PSNR per doubling net of {trend * 1000:.2f} dB per 1000 "
-                       f"steps at a fixed count (under {s.min_gain_db})")
+                why = f"{gain:.2f} dB of validation PSNR per doubling {reading} (under {s.min_gain_db})"
             log.info("step %d: the count stops growing at %d surfels: %s", it, count, why)
             sstate = dict(sstate, growing=jnp.int32(0), holding=jnp.int32(0), frozen_at=jnp.int32(it),
                           compact_due=jnp.int32(int(s.compact_at_freeze)))
             return sstate, {"growth_stopped": count}
         target = math.ceil(count * 2.0 ** s.level_doublings)
         if gain is not None:
-            log.info("step %d: %.2f dB per doubling net of the time trend at %d surfels; growing to %d",
-                     it, gain, count, target)
+            log.info("step %d: %.2f dB of validation PSNR per doubling %s at %d surfels; growing to %d",
+                     it, gain, reading, count, target)
         return dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target)), {}
 
     def at_end(self, ctx, state, sstate):
