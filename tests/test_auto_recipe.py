@@ -218,6 +218,50 @@ def test_shed_judge_sheds_the_level_it_judges(monkeypatch):
         _growth_decisions(FIRST_LEVEL, level_judge="guess")
 
 
+def test_fork_judge_sets_the_model_against_its_shed_copy_trained_as_long(monkeypatch):
+    from ghsplat_jax.train.strategies import auto
+
+    forks = []
+
+    def fake_fork(psnr):
+        def fork(ctx, state, shed_count, start, steps):
+            forks.append((shed_count, start, steps))
+            return psnr
+        return fork
+
+    # A hold of three checks at 10,000 surfels (steps 500-1000): at its end the shed copy (half
+    # the count) trains 500 steps; the count holds until the run has trained as many.
+    hold = [(2000, 18.0, 4), (10000, 25.0, 1), (10000, 25.5, 1), (10000, 26.0, 1), (10000, 26.2, 1)]
+    monkeypatch.setattr(auto, "fork_psnr", fake_fork(25.8))
+    frozen, sstate = _growth_decisions(hold, level_judge="fork")
+    assert forks == [(5000, 1000, 500)] and int(sstate["fork_due"]) == 1500 and int(sstate["holding"])
+    assert int(sstate["level_target"]) == 0 and frozen == []
+    # At step 1500 the model that kept them scores 26.5 against the copy's 25.8: 0.7 dB for one
+    # doubling, worth it: the next level grows to twice the count.
+    frozen, sstate = _growth_decisions(hold + [(10000, 26.5, 1)], level_judge="fork")
+    assert frozen == [] and int(sstate["level_target"]) == 20000 and not int(sstate["fork_due"])
+    # Against a copy that recovered to 26.2 dB it is 0.3 dB: the count freezes at 10,000.
+    monkeypatch.setattr(auto, "fork_psnr", fake_fork(26.2))
+    frozen, sstate = _growth_decisions(hold + [(10000, 26.5, 1)], level_judge="fork")
+    assert frozen == [10000] and not int(sstate["growing"])
+
+
+def test_a_training_copy_trains_as_the_run_does_and_leaves_the_run_alone(tmp_path):
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+    from ghsplat_jax.train.trainer import TrainingSession
+
+    ds = cached_synthetic_dataset(num_views=8, width=32, height=24, num_surfels=40, test_every=4, num_points=200)
+    cfg = TrainConfig().replace(steps=20, progress=False, pair_capacity=16384, densify_from=1000).resolved()
+    session = TrainingSession(cfg, tmp_path / "s", ds, resume=False)
+    start = session.state
+    copy = session.train_copy(start, 0, 3)
+    for step in range(3):
+        session.step(step)
+    assert session.state is not start and int(copy.step) == int(session.state.step) == 3
+    np.testing.assert_allclose(np.asarray(copy.params.means), np.asarray(session.state.params.means), atol=1e-6)
+    assert not np.allclose(np.asarray(copy.params.means), np.asarray(start.params.means))
+
+
 def test_early_checks_judge_no_level_even_at_full_resolution():
     # Without a resolution schedule every check is at full resolution; those the stop rule does not
     # count yet (the trainer marks them early) neither begin nor judge a level.
@@ -312,6 +356,30 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_f
         assert f["after"] <= f["before"] and 0 < f["step"] < stop["stopped_at"]
     else:
         assert "at_freeze" not in c
+
+
+def test_a_tiny_run_judged_by_forks_freezes_its_count_only_after_the_fork_trained(tmp_path, caplog):
+    import logging
+
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+    from ghsplat_jax.train.trainer import train
+
+    ds = cached_synthetic_dataset(num_views=20, width=32, height=24, num_surfels=40, test_every=5, num_points=200)
+    cfg = TrainConfig().replace(recipe="auto", steps=120, val_every=10, stop_patience=0, stop_after=0, res_until=20,
+                                res_min_side=8, densify_from=5, densify_every=5, sh_degree=1, progress=False,
+                                checkpoint_every=1000, pair_capacity=16384)
+    # min_gain_db 5: the first fork (30 steps after the hold's end) cannot earn it; the count freezes.
+    cfg = cfg.replace(**{"strategy.level_judge": "fork", "strategy.fork_steps": 30, "strategy.min_gain_db": 5.0,
+                         "strategy.hold_checks": 2, "strategy.compact": False})
+    with caplog.at_level(logging.INFO, logger="ghsplat.train"):
+        result = train(cfg, tmp_path / "run", dataset=ds)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "stats.jsonl").read_text().splitlines()]
+    (frozen,) = [r for r in rows if "growth_stopped" in r]
+    forked = [m for m in caplog.messages if "trained 30 steps on" in m]
+    assert len(forked) == 1 and f"against this model's at step {frozen['step']}" in forked[0]
+    assert "against the model trained without" in caplog.text and result.steps == 120
+    assert len({r["num_surfels"] for r in rows if r["step"] >= frozen["step"]}) == 1  # held since
+    assert np.isfinite(np.asarray(result.surfels.means)).all()
 
 
 def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):

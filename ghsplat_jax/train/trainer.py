@@ -362,7 +362,8 @@ class TrainingSession:
         return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
                                pair_capacity=self.pair_capacity, means_lr=self.means_lr, raster=self.config.raster,
                                render_fn=self.render_fn,
-                               validate=(lambda state: self.validate(state)["psnr"]) if self.config.val_every else None)
+                               validate=(lambda state: self.validate(state)["psnr"]) if self.config.val_every else None,
+                               train_copy=self.train_copy)
 
     def _hook(self, name: str, *args) -> dict:
         """Call a strategy hook on the current state; keep what it returns."""
@@ -452,26 +453,38 @@ class TrainingSession:
         return self.stop_state.get("stopped_at") is not None
 
     # -- one iteration ------------------------------------------------------------------
+    def update(self, state: TrainState, step: int) -> tuple[int, TrainState, dict]:
+        """(view, `state` after training step `step` (0-based) on its view, the step's metrics).
+        A render that dropped pairs grows the buffer and is redone (one compile per bucket)."""
+        v, image, K, width, height = self.view_at(step)
+        while True:
+            rcfg = step_raster_config(self.config, self.pair_capacity, step)
+            lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
+            per_view = state.pose is not None or state.exposure is not None
+            view = {"view": jnp.int32(v)} if per_view else {}
+            new, m = self.step_fn(state, image, K, self.w2cs[v], lr, rcfg, width, height, **view)
+            m = jax.device_get(m)
+            if int(m["overflow"]) <= 0:
+                return v, new, {k: np.asarray(val).item() for k, val in m.items()}
+            self.pair_capacity = regrown_capacity(self.pair_capacity, int(m["num_pairs"]))
+            log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
+                     self.pair_capacity)
+
+    def train_copy(self, state: TrainState, start: int, steps: int) -> TrainState:
+        """`state` trained on the views and learning rates of steps start..start+steps-1, as the run
+        trains them, without strategy rounds, checks or logs: a counterfactual a strategy may judge
+        by. A non-finite step is skipped."""
+        for step in range(start, start + steps):
+            _, new, m = self.update(state, step)
+            state = new if m["finite"] else state
+        return state
+
     def step(self, step: int, before_round=None) -> dict:
         """Run training step `step` (0-based), handling pair overflow and non-finite results.
         `before_round()` is called after the update and before the strategy's round of this step
         (which may reset every opacity), as 3DGS evaluates its test views."""
         c = self.config
-        v, image, K, width, height = self.view_at(step)
-        while True:
-            rcfg = step_raster_config(c, self.pair_capacity, step)
-            lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
-            per_view = self.state.pose is not None or self.state.exposure is not None
-            view = {"view": jnp.int32(v)} if per_view else {}
-            new, m = self.step_fn(self.state, image, K, self.w2cs[v], lr, rcfg, width, height, **view)
-            m = jax.device_get(m)
-            if int(m["overflow"]) <= 0:
-                break
-            # The render dropped pairs: discard the step, grow the buffer, redo (one compile per bucket).
-            self.pair_capacity = regrown_capacity(self.pair_capacity, int(m["num_pairs"]))
-            log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
-                     self.pair_capacity)
-        m = {k: np.asarray(val).item() for k, val in m.items()}
+        v, new, m = self.update(self.state, step)
         self.changed = False
         if not m["finite"]:
             self.rollbacks += 1

@@ -23,8 +23,22 @@ hold's trend is read right after a growth, while the new surfels still settle, s
 the time's share and errs towards fewer surfels: on all eight Table 1 segments (13 runs) and on
 fern the first judged doubling read -0.98 to +0.32 dB net of a trend of 0.5-1.9 dB per 1000 steps,
 and the count froze at twice its size at full resolution (fern 123k, rows 25-34k), although a row model of 55k
-surfels ends 0.7 dB above one of 29k after the same steps. `max_surfels` is a safety ceiling only
-(0: one surfel per pixel of a training image x `ceiling_per_pixel`).
+surfels ends 0.7 dB above one of 29k after the same steps; at 384x288 row2_x1 froze at the same
+29,108 surfels, as its count before full resolution follows the same steps at any image size.
+
+`level_judge = "shed"` reads a level without a time trend: at the hold's end, the validation PSNR
+the model loses, as it stands, without the level's share of its surfels (those of least blending
+weight over the training views, as compaction ranks them), per doubling. Both sides are read at
+the same step on the same views, so the steps' gain cancels. Nothing is retrained, so a smaller
+model trained as long would lose less than the shed one does: the reading errs towards more
+surfels, where the trend's errs towards fewer. The first
+level judged sheds half of the count grown before full resolution, so an over-sized start can
+freeze at once. `level_judge = "fork"` lets the shed model recover before it is read: at the hold's
+end it trains a copy without the level's share for `fork_steps` steps on the views and learning
+rates the run will use next (ctx.train_copy; no refinement rounds), then holds the count until the
+run has trained as many steps, and judges the level by the validation PSNR of the model that kept
+its surfels less the copy's, per doubling. `max_surfels` is a safety ceiling only (0: one surfel per pixel of a training
+image x `ceiling_per_pixel`).
 
 At the end (after the stop rule has restored its best check's model), compaction removes the
 surfels that carry least blending weight over the training views, as many as cost at most
@@ -51,7 +65,7 @@ from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_r
 log = logging.getLogger("ghsplat.train")
 
 GROWTH_WEIGHTS = ("error", "opacity")
-LEVEL_JUDGES = ("trend", "shed")
+LEVEL_JUDGES = ("trend", "shed", "fork")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +84,10 @@ class AutoSettings(MCMCSettings):
         level_judge: how a level's gain is read at its hold's end. "trend": the validation PSNR
             gained since the previous level, less the hold's time trend; "shed": the validation
             PSNR the model loses, at the same step, without the level's share of its surfels (the
-            least blending weight over the training views), which no time trend enters.
+            least blending weight over the training views), which no time trend enters; "fork":
+            the same shed model trained `fork_steps` steps on the run's views (a counterfactual
+            that recovers from the removal), against the model that kept them over those steps.
+        fork_steps: the steps the "fork" judge trains its shed model (the count holds meanwhile).
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
         ceiling_per_pixel: the ceiling when max_surfels is 0.
@@ -88,6 +105,7 @@ class AutoSettings(MCMCSettings):
     hold_checks: int = 3
     growth_weight: str = "error"
     level_judge: str = "trend"
+    fork_steps: int = 500
     ceiling_per_pixel: float = 2.0
     compact: bool = True
     compact_max_loss_db: float = 0.05
@@ -107,6 +125,8 @@ class AutoSettings(MCMCSettings):
             raise ValueError(f"growth_weight must be one of {GROWTH_WEIGHTS}, got {self.growth_weight!r}")
         if self.level_judge not in LEVEL_JUDGES:
             raise ValueError(f"level_judge must be one of {LEVEL_JUDGES}, got {self.level_judge!r}")
+        if self.fork_steps < 1:
+            raise ValueError(f"fork_steps must be >= 1, got {self.fork_steps}")
         if not self.ceiling_per_pixel > 0:
             raise ValueError(f"ceiling_per_pixel must be positive, got {self.ceiling_per_pixel}")
         if not self.compact_max_loss_db >= 0:
@@ -146,15 +166,29 @@ def level_gain(prev: tuple[int, int, float], now: tuple[int, int, float], trend:
     return (now[2] - prev[2] - max(trend, 0.0) * (now[0] - prev[0])) / doublings
 
 
-def shed_gain(ctx, state: TrainState, shed: int) -> float:
+def shed(ctx, state: TrainState, count: int) -> TrainState:
+    """`state` without its `count` live surfels of least blending weight over the training views."""
+    return free_slots(state, lowest_mask(state.active, accumulated_weights(ctx, state), jnp.int32(count)))
+
+
+def doublings_shed(count: int, shed_count: int) -> float:
+    """Doublings of the count that shedding `shed_count` of `count` surfels undoes (0: none or all)."""
+    return math.log2(count / (count - shed_count)) if 0 < shed_count < count else 0.0
+
+
+def shed_gain(ctx, state: TrainState, shed_count: int) -> float:
     """Validation PSNR per doubling of the count that the model loses, as it stands, without its
-    `shed` live surfels of least blending weight over the training views (nothing retrained)."""
-    count = state.num_active()
-    if not 0 < shed < count:
+    `shed_count` live surfels of least blending weight over the training views (nothing retrained)."""
+    doublings = doublings_shed(state.num_active(), shed_count)
+    if not doublings:
         return -math.inf  # the count did not grow (a ceiling): nothing bought
-    weight = accumulated_weights(ctx, state)
-    without = free_slots(state, lowest_mask(state.active, weight, jnp.int32(shed)))
-    return (ctx.validate(state) - ctx.validate(without)) / math.log2(count / (count - shed))
+    return (ctx.validate(state) - ctx.validate(shed(ctx, state, shed_count))) / doublings
+
+
+def fork_psnr(ctx, state: TrainState, shed_count: int, start: int, steps: int) -> float:
+    """Validation PSNR of `state` without its `shed_count` surfels of least weight, trained on for
+    `steps` steps from step `start` as the run trains (ctx.train_copy)."""
+    return ctx.validate(ctx.train_copy(shed(ctx, state, shed_count), start, steps))
 
 
 def start_hold(sstate: dict) -> dict:
@@ -180,6 +214,7 @@ class AutoStrategy(MCMCStrategy):
                     level_target=jnp.int32(0), holding=jnp.int32(0), hold_seen=jnp.int32(0),
                     hold_first_step=jnp.int32(0), hold_first_psnr=jnp.float32(0.0),
                     checked_step=jnp.int32(0), checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0),
+                    fork_due=jnp.int32(0), fork_psnr=jnp.float32(0.0), fork_shed=jnp.int32(0),
                     frozen_at=jnp.int32(0), compacted_from=jnp.int32(0), compacted_to=jnp.int32(0),
                     compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0),
                     compact_due=jnp.int32(0), freeze_compacted_from=jnp.int32(0), freeze_compacted_to=jnp.int32(0))
@@ -234,18 +269,49 @@ class AutoStrategy(MCMCStrategy):
         sstate = dict(sstate, hold_seen=jnp.int32(seen))
         if seen < self.settings.hold_checks:
             return sstate, {}
+        if self.settings.level_judge == "fork":
+            return self.fork(ctx, state, sstate, (it, state.num_active(), psnr))
         return self.judge_level(ctx, state, sstate, (it, state.num_active(), psnr))
+
+    def fork(self, ctx, state, sstate, now: tuple[int, int, float]):
+        """The "fork" judge, at a hold's end: train the shed model now, judge when the run has
+        trained as many steps (the count holds until then)."""
+        s, (it, count, _) = self.settings, now
+        due = int(sstate["fork_due"])
+        if due and it >= due:
+            return self.judge_level(ctx, state, sstate, now)
+        if due:
+            return sstate, {}
+        prev_count = int(sstate["checked_count"])
+        shed_count = count - prev_count if prev_count else count // 2
+        if not doublings_shed(count, shed_count) or count >= self.ceiling(ctx, sstate):
+            return self.judge_level(ctx, state, sstate, now)
+        fork = fork_psnr(ctx, state, shed_count, it, s.fork_steps)
+        log.info("step %d: %d surfels without the %d of least weight, trained %d steps on: validation PSNR "
+                 "%.2f dB, to be set against this model's at step %d", it, count, shed_count, s.fork_steps,
+                 fork, it + s.fork_steps)
+        return dict(sstate, fork_due=jnp.int32(it + s.fork_steps), fork_psnr=jnp.float32(fork),
+                    fork_shed=jnp.int32(shed_count)), {}
 
     def judge_level(self, ctx, state, sstate, now: tuple[int, int, float]):
         """At a hold's end: grow the next level, or freeze the count (see the module docstring)."""
         s, (it, count, psnr) = self.settings, now
         prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
         at_ceiling = count >= self.ceiling(ctx, sstate)
-        if s.level_judge == "shed":
+        if s.level_judge == "fork" and int(sstate["fork_due"]):
+            shed_count = int(sstate["fork_shed"])
+            gain = (psnr - float(sstate["fork_psnr"])) / doublings_shed(count, shed_count)
+            reading = f"over the last {s.fork_steps} steps, against the model trained without its {shed_count} " \
+                      f"surfels of least weight"
+            sstate = dict(sstate, fork_due=jnp.int32(0))
+        elif s.level_judge == "fork":
+            gain = -math.inf if not at_ceiling else None  # the count did not grow
+            reading = ""
+        elif s.level_judge == "shed":
             # The first level judged sheds one doubling: the count grown before full resolution.
-            shed = count - prev[1] if prev[1] else count // 2
-            gain = None if at_ceiling else shed_gain(ctx, state, shed)
-            reading = f"without the {shed} surfels of least weight"
+            shed_count = count - prev[1] if prev[1] else count // 2
+            gain = None if at_ceiling else shed_gain(ctx, state, shed_count)
+            reading = f"without the {shed_count} surfels of least weight"
         else:
             first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
             trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0

@@ -124,6 +124,8 @@ class StrategyContext:
     render_fn: Callable | None = None
     validate: Callable[[TrainState], float] | None = None  # held-out views' mean PSNR of a state (runs with
                                                            # a validation split; else None)
+    train_copy: Callable[[TrainState, int, int], TrainState] | None = None  # (state, start, steps): a state
+                                                           # trained on as the run would, hooks left out
 
 
 @dataclasses.dataclass(frozen=True)
