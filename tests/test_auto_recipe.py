@@ -246,6 +246,49 @@ def test_fork_judge_sets_the_model_against_its_shed_copy_trained_as_long(monkeyp
     assert frozen == [10000] and not int(sstate["growing"])
 
 
+def test_plateau_judge_grows_at_each_plateau_while_the_last_level_paid():
+    from types import SimpleNamespace
+
+    from ghsplat_jax.train.strategies import make_strategy
+
+    strategy = make_strategy(TrainConfig().replace(recipe="auto", **{"strategy.level_judge": "plateau"}))
+    ctx = SimpleNamespace(width=400, height=400)
+
+    def plateau(sstate, it, count, best):
+        return strategy.on_plateau(ctx, SimpleNamespace(num_active=lambda: count), sstate, it, best)
+
+    sstate = strategy.init_state(100)
+    # Checks at full resolution begin the hold; the hook judges nothing at a check.
+    sstate, info = strategy.on_validation(ctx, None, sstate, 2250, {"psnr": 24.0, "early": False})
+    assert int(sstate["holding"]) and info == {}
+    sstate, grows, _ = plateau(sstate, 4000, 14000, 26.0)  # the first plateau: grow
+    assert grows and int(sstate["level_target"]) == 28000 and not int(sstate["holding"])
+    assert plateau(sstate, 4500, 20000, 26.1)[1]  # a plateau while the level grows: wait for its own
+    sstate = dict(sstate, holding=1)  # the level reached its target (refine begins the hold)
+    sstate, grows, _ = plateau(sstate, 6000, 28000, 26.8)  # +0.8 dB for one doubling: grow again
+    assert grows and int(sstate["level_target"]) == 56000
+    sstate = dict(sstate, holding=1)
+    sstate, grows, info = plateau(sstate, 8000, 56000, 27.1)  # +0.3 dB: not worth it
+    assert not grows and info == {"growth_stopped": 56000} and int(sstate["frozen_at"]) == 8000
+    assert plateau(sstate, 9000, 56000, 27.2)[1] is False  # frozen: the stop rule acts
+    # The ceiling (2 x 100 x 100 pixels) freezes at the first plateau.
+    small = SimpleNamespace(width=100, height=100)
+    s0 = dict(strategy.init_state(100), holding=1)
+    assert strategy.on_plateau(small, SimpleNamespace(num_active=lambda: 20000), s0, 4000, 26.0)[1] is False
+
+
+def test_the_stop_rule_waits_while_the_strategy_grows_at_a_plateau():
+    from ghsplat_jax.train.stopping import PlateauRule
+
+    rule = PlateauRule(patience=2, min_gain=0.1, anneal=0.5)
+    before = dict(rule.initial(), best_psnr=26.0, best_step=500, waited=1)
+    after, action = rule.update(before, 1000, 26.05)
+    assert action == "anneal"
+    held = rule.held(before, after)
+    assert held["waited"] == 0 and held["lr_scale"] == 1.0 and held["annealed_at"] is None
+    assert held["best_psnr"] == 26.05 and held["best_step"] == 1000  # the better model is still kept
+
+
 def test_a_training_copy_trains_as_the_run_does_and_leaves_the_run_alone(tmp_path):
     from ghsplat_jax.train.synthetic import cached_synthetic_dataset
     from ghsplat_jax.train.trainer import TrainingSession
@@ -380,6 +423,28 @@ def test_a_tiny_run_judged_by_forks_freezes_its_count_only_after_the_fork_traine
     assert "against the model trained without" in caplog.text and result.steps == 120
     assert len({r["num_surfels"] for r in rows if r["step"] >= frozen["step"]}) == 1  # held since
     assert np.isfinite(np.asarray(result.surfels.means)).all()
+
+
+def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_path):
+    from ghsplat_jax.eval.evaluate import train_and_evaluate
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+
+    ds = cached_synthetic_dataset(num_views=20, width=32, height=24, num_surfels=40, test_every=5, num_points=200)
+    cfg = TrainConfig().replace(recipe="auto", steps=600, val_every=10, stop_patience=2, stop_min_gain=0.5,
+                                stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
+                                sh_degree=1, progress=False, checkpoint_every=1000, pair_capacity=16384)
+    cfg = cfg.replace(**{"strategy.level_judge": "plateau", "strategy.min_gain_db": 5.0})
+    metrics = train_and_evaluate(cfg, tmp_path / "run", dataset=ds)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "stats.jsonl").read_text().splitlines()]
+    grew = [r["step"] for r in rows if r.get("stop_action") == "grow"]
+    (frozen,) = [r["step"] for r in rows if "growth_stopped" in r]
+    stop = metrics["stop"]
+    # The first plateau grows a level (plateaus while it grows wait for its own; 5 dB a doubling is
+    # out of reach after it): the count freezes at the level's plateau, and the rule anneals there.
+    assert grew and max(grew) < frozen == stop["annealed_at"] < stop["stopped_at"]
+    counts = {r["step"]: r["num_surfels"] for r in rows}
+    assert counts[frozen] > counts[grew[0]] and len({n for t, n in counts.items() if t >= frozen}) == 1
+    assert metrics["finished"] and math.isfinite(metrics["test"]["psnr"])
 
 
 def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):

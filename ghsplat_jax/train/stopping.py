@@ -66,3 +66,10 @@ class PlateauRule:
             f"validation PSNR gained less than {self.min_gain} dB over {self.patience} checks"
             + (f" after the learning-rate annealing at step {state['annealed_at']}" if state["annealed_at"] else "")))
         return state, "stop"
+
+    @staticmethod
+    def held(before: dict, after: dict) -> dict:
+        """`after` (an update that annealed or stopped) with that action undone and the wait begun
+        again: the best model it saw stays, the learning rate and the run go on as `before`."""
+        return dict(after, waited=0, lr_scale=before["lr_scale"], annealed_at=before["annealed_at"],
+                    stopped_at=None, reason=None)

@@ -439,7 +439,15 @@ class TrainingSession:
         # is later); the strategy's count rule does not judge by it either.
         val = self.validate() | {"early": step <= self.rule.stop_after}
         self.sstate, info = self.strategy.on_validation(self.context(), self.state, self.sstate, step, val)
-        self.stop_state, action = self.rule.update(self.stop_state, step, val["psnr"])
+        before = self.stop_state
+        self.stop_state, action = self.rule.update(before, step, val["psnr"])
+        if action in ("anneal", "stop"):
+            self.sstate, grows, more = self.strategy.on_plateau(self.context(), self.state, self.sstate, step,
+                                                                 self.stop_state["best_psnr"])
+            info = info | more
+            if grows:  # the model grows instead: the rule waits for a plateau of the larger model
+                self.stop_state = self.rule.held(before, self.stop_state)
+                action = "grow"
         if self.stop_state["best_step"] == step:  # also when the same check ends the run
             self.best = (self.state, self.sstate)
         if action == "anneal":

@@ -65,7 +65,7 @@ from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_r
 log = logging.getLogger("ghsplat.train")
 
 GROWTH_WEIGHTS = ("error", "opacity")
-LEVEL_JUDGES = ("trend", "shed", "fork")
+LEVEL_JUDGES = ("trend", "shed", "fork", "plateau")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +87,9 @@ class AutoSettings(MCMCSettings):
             least blending weight over the training views), which no time trend enters; "fork":
             the same shed model trained `fork_steps` steps on the run's views (a counterfactual
             that recovers from the removal), against the model that kept them over those steps.
+            "plateau": the count holds until validation is flat (where the stop rule would anneal or
+            stop), and each level is judged by the best validation PSNR at its plateau against the
+            previous level's, both trained until the steps gain nothing more.
         fork_steps: the steps the "fork" judge trains its shed model (the count holds meanwhile).
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
@@ -261,6 +264,8 @@ class AutoStrategy(MCMCStrategy):
             return sstate, {}
         if not int(sstate["level_target"]) and not bool(sstate["holding"]):
             sstate = start_hold(sstate)  # full resolution: hold
+        if self.settings.level_judge == "plateau":
+            return sstate, {}  # judged at validation plateaus (on_plateau)
         if not bool(sstate["holding"]):
             return sstate, {}  # a level still growing
         psnr, seen = float(val["psnr"]), int(sstate["hold_seen"]) + 1
@@ -292,6 +297,37 @@ class AutoStrategy(MCMCStrategy):
                  fork, it + s.fork_steps)
         return dict(sstate, fork_due=jnp.int32(it + s.fork_steps), fork_psnr=jnp.float32(fork),
                     fork_shed=jnp.int32(shed_count)), {}
+
+    def on_plateau(self, ctx, state, sstate, it, best_psnr):
+        """The "plateau" judge: at a validation plateau, grow the next level while the previous one
+        paid (or this is the first plateau), else freeze the count and let the stop rule act."""
+        s = self.settings
+        if s.level_judge != "plateau" or not bool(sstate["growing"]):
+            return sstate, False, {}
+        if not bool(sstate["holding"]):
+            return sstate, True, {}  # a level still growing: its plateau is yet to come
+        count = state.num_active()
+        prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
+        sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
+                      checked_psnr=jnp.float32(best_psnr))
+        if count >= self.ceiling(ctx, sstate):
+            why = f"the ceiling of {self.ceiling(ctx, sstate)}"
+        elif prev[1] and count <= prev[1]:
+            why = f"the count did not grow since the last level ({prev[1]} -> {count} surfels)"
+        elif prev[1] and (gain := (best_psnr - prev[2]) / math.log2(count / prev[1])) < s.min_gain_db:
+            why = (f"{gain:.2f} dB of validation PSNR per doubling between the plateaus at {prev[1]} and {count} "
+                   f"surfels (under {s.min_gain_db})")
+        else:
+            target = math.ceil(count * 2.0 ** s.level_doublings)
+            paid = f"{(best_psnr - prev[2]) / math.log2(count / prev[1]):.2f} dB per doubling since {prev[1]} " \
+                   f"surfels" if prev[1] else "the first plateau"
+            log.info("step %d: validation flat at %.2f dB with %d surfels (%s); growing to %d", it, best_psnr,
+                     count, paid, target)
+            return dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target)), True, {}
+        log.info("step %d: the count stops growing at %d surfels: %s", it, count, why)
+        sstate = dict(sstate, growing=jnp.int32(0), holding=jnp.int32(0), frozen_at=jnp.int32(it),
+                      compact_due=jnp.int32(int(s.compact_at_freeze)))
+        return sstate, False, {"growth_stopped": count}
 
     def judge_level(self, ctx, state, sstate, now: tuple[int, int, float]):
         """At a hold's end: grow the next level, or freeze the count (see the module docstring)."""

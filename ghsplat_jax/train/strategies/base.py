@@ -164,6 +164,11 @@ class Strategy:
         """After a validation check (`val`: the held-out views' metrics): (sstate, info)."""
         return sstate, {}
 
+    def on_plateau(self, ctx: StrategyContext, state: TrainState, sstate: dict, it: int, best_psnr: float):
+        """When the stop rule would anneal or stop (validation flat; `best_psnr` its best so far):
+        (sstate, True to grow instead and keep the rule from acting, info)."""
+        return sstate, False, {}
+
     def at_end(self, ctx: StrategyContext, state: TrainState, sstate: dict):
         if self.settings.contrib_prune_final:
             return self.contribution_pass(ctx, state, sstate)
