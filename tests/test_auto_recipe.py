@@ -257,23 +257,29 @@ def test_plateau_judge_grows_at_each_plateau_while_the_last_level_paid():
     def plateau(sstate, it, count, best):
         return strategy.on_plateau(ctx, SimpleNamespace(num_active=lambda: count), sstate, it, best)
 
-    sstate = strategy.init_state(100)
-    # Checks at full resolution begin the hold; the hook judges nothing at a check.
-    sstate, info = strategy.on_validation(ctx, None, sstate, 2250, {"psnr": 24.0, "early": False})
-    assert int(sstate["holding"]) and info == {}
-    sstate, grows, _ = plateau(sstate, 4000, 14000, 26.0)  # the first plateau: grow
+    def checks(sstate, n):
+        for it in range(n):
+            sstate, info = strategy.on_validation(ctx, None, sstate, 250 * it, {"psnr": 24.0, "early": False})
+            assert info == {}  # the hook judges nothing at a check
+        return sstate
+
+    # The first check at full resolution begins the hold; a plateau before `hold_checks` checks at
+    # the count waits (the flat checks were made while the count still grew).
+    sstate = checks(strategy.init_state(100), 1)
+    assert int(sstate["holding"]) and plateau(sstate, 2500, 14000, 26.0)[1] and int(sstate["level_target"]) == 0
+    sstate, grows, _ = plateau(checks(sstate, 2), 4000, 14000, 26.0)  # the first plateau: grow
     assert grows and int(sstate["level_target"]) == 28000 and not int(sstate["holding"])
     assert plateau(sstate, 4500, 20000, 26.1)[1]  # a plateau while the level grows: wait for its own
-    sstate = dict(sstate, holding=1)  # the level reached its target (refine begins the hold)
-    sstate, grows, _ = plateau(sstate, 6000, 28000, 26.8)  # +0.8 dB for one doubling: grow again
+    sstate = start_hold(sstate)  # the level reached its target (refine begins the hold)
+    sstate, grows, _ = plateau(checks(sstate, 3), 6000, 28000, 26.8)  # +0.8 dB for one doubling: grow again
     assert grows and int(sstate["level_target"]) == 56000
-    sstate = dict(sstate, holding=1)
-    sstate, grows, info = plateau(sstate, 8000, 56000, 27.1)  # +0.3 dB: not worth it
+    sstate = start_hold(sstate)
+    sstate, grows, info = plateau(checks(sstate, 3), 8000, 56000, 27.1)  # +0.3 dB: not worth it
     assert not grows and info == {"growth_stopped": 56000} and int(sstate["frozen_at"]) == 8000
     assert plateau(sstate, 9000, 56000, 27.2)[1] is False  # frozen: the stop rule acts
     # The ceiling (2 x 100 x 100 pixels) freezes at the first plateau.
     small = SimpleNamespace(width=100, height=100)
-    s0 = dict(strategy.init_state(100), holding=1)
+    s0 = dict(strategy.init_state(100), holding=1, hold_seen=3)
     assert strategy.on_plateau(small, SimpleNamespace(num_active=lambda: 20000), s0, 4000, 26.0)[1] is False
 
 

@@ -26,19 +26,27 @@ and the count froze at twice its size at full resolution (fern 123k, rows 25-34k
 surfels ends 0.7 dB above one of 29k after the same steps; at 384x288 row2_x1 froze at the same
 29,108 surfels, as its count before full resolution follows the same steps at any image size.
 
-`level_judge = "shed"` reads a level without a time trend: at the hold's end, the validation PSNR
-the model loses, as it stands, without the level's share of its surfels (those of least blending
-weight over the training views, as compaction ranks them), per doubling. Both sides are read at
-the same step on the same views, so the steps' gain cancels. Nothing is retrained, so a smaller
-model trained as long would lose less than the shed one does: the reading errs towards more
-surfels, where the trend's errs towards fewer. The first
-level judged sheds half of the count grown before full resolution, so an over-sized start can
-freeze at once. `level_judge = "fork"` lets the shed model recover before it is read: at the hold's
-end it trains a copy without the level's share for `fork_steps` steps on the views and learning
-rates the run will use next (ctx.train_copy; no refinement rounds), then holds the count until the
-run has trained as many steps, and judges the level by the validation PSNR of the model that kept
-its surfels less the copy's, per doubling. `max_surfels` is a safety ceiling only (0: one surfel per pixel of a training
-image x `ceiling_per_pixel`).
+Other readings of a level (`level_judge`), each measured on row2_x1:
+- "shed": at the hold's end, the validation PSNR the model loses, as it stands, without the
+  level's share of its surfels (those of least blending weight over the training views, as
+  compaction ranks them), per doubling. Both sides are read at the same step on the same views, so
+  the steps' gain cancels; but nothing is retrained, and the reading rose with the count (384x288:
+  0.74, 1.04 and 1.40 dB at 14,554, 29,108 and 58,216 surfels), so it grows to the ceiling.
+- "fork": that shed model trained on for `fork_steps` steps on the views and learning rates the
+  run will use next (ctx.train_copy; no refinement rounds), against the model that kept its
+  surfels over the same steps (the count holds meanwhile). It recovered to within 0.20 dB of the
+  14,554-surfel model at 384x288 and froze the count there, lower than the trend.
+- "plateau": the count holds until validation is flat, where the stop rule would anneal or stop
+  (on_plateau), and a level is judged by its plateau against the previous level's, per doubling.
+  A doubling pays late: at 384x288 a model grown from 29,108 to 58,216 surfels (steps 4,000-4,750;
+  the same run until then) scored up to 0.19 dB of validation PSNR below the one held at 29,108
+  while it grew, then 0.64 dB above it at step 5,500 (test: +0.60 dB), already past the smaller
+  model's best test PSNR (26.62 dB at step 7,000). Readings taken within a few hundred steps of a
+  growth see how fast a model trains, not what it can hold.
+
+"shed" and "fork" take the first level judged as half of the count grown before full resolution.
+`max_surfels` is a safety ceiling only (0: one surfel per pixel of a training image x
+`ceiling_per_pixel`).
 
 At the end (after the stop rule has restored its best check's model), compaction removes the
 surfels that carry least blending weight over the training views, as many as cost at most
@@ -88,8 +96,9 @@ class AutoSettings(MCMCSettings):
             the same shed model trained `fork_steps` steps on the run's views (a counterfactual
             that recovers from the removal), against the model that kept them over those steps.
             "plateau": the count holds until validation is flat (where the stop rule would anneal or
-            stop), and each level is judged by the best validation PSNR at its plateau against the
-            previous level's, both trained until the steps gain nothing more.
+            stop, and at least `hold_checks` checks at the level's count), and each level is judged
+            by the best validation PSNR at its plateau against the previous level's, both trained
+            until the steps gain nothing more.
         fork_steps: the steps the "fork" judge trains its shed model (the count holds meanwhile).
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
@@ -264,8 +273,8 @@ class AutoStrategy(MCMCStrategy):
             return sstate, {}
         if not int(sstate["level_target"]) and not bool(sstate["holding"]):
             sstate = start_hold(sstate)  # full resolution: hold
-        if self.settings.level_judge == "plateau":
-            return sstate, {}  # judged at validation plateaus (on_plateau)
+        if self.settings.level_judge == "plateau":  # judged at validation plateaus (on_plateau)
+            return (dict(sstate, hold_seen=sstate["hold_seen"] + 1) if bool(sstate["holding"]) else sstate), {}
         if not bool(sstate["holding"]):
             return sstate, {}  # a level still growing
         psnr, seen = float(val["psnr"]), int(sstate["hold_seen"]) + 1
@@ -304,8 +313,10 @@ class AutoStrategy(MCMCStrategy):
         s = self.settings
         if s.level_judge != "plateau" or not bool(sstate["growing"]):
             return sstate, False, {}
-        if not bool(sstate["holding"]):
-            return sstate, True, {}  # a level still growing: its plateau is yet to come
+        if not bool(sstate["holding"]) or int(sstate["hold_seen"]) < s.hold_checks:
+            # A level still growing, or just grown: the checks that found validation flat were made
+            # before it could use its surfels. Its plateau is yet to come.
+            return sstate, True, {}
         count = state.num_active()
         prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
         sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
@@ -329,32 +340,33 @@ class AutoStrategy(MCMCStrategy):
                       compact_due=jnp.int32(int(s.compact_at_freeze)))
         return sstate, False, {"growth_stopped": count}
 
+    def level_reading(self, ctx, state, sstate, now, prev) -> tuple[float | None, str]:
+        """(the level's validation PSNR per doubling, by the judge's reading; None where there is
+        nothing to read, which grows the next level; the reading in words)."""
+        s, (it, count, psnr) = self.settings, now
+        if s.level_judge == "fork":
+            if not int(sstate["fork_due"]):
+                return -math.inf, ""  # fork() judges at once only a count that did not grow
+            shed_count = int(sstate["fork_shed"])
+            return ((psnr - float(sstate["fork_psnr"])) / doublings_shed(count, shed_count),
+                    f"over the last {s.fork_steps} steps, against the model trained without its {shed_count} "
+                    f"surfels of least weight")
+        if s.level_judge == "shed":
+            shed_count = count - prev[1] if prev[1] else count // 2
+            return shed_gain(ctx, state, shed_count), f"without the {shed_count} surfels of least weight"
+        first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
+        trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
+        return (level_gain(prev, now, trend) if prev[1] else None,
+                f"net of {trend * 1000:.2f} dB per 1000 steps at a fixed count")
+
     def judge_level(self, ctx, state, sstate, now: tuple[int, int, float]):
         """At a hold's end: grow the next level, or freeze the count (see the module docstring)."""
         s, (it, count, psnr) = self.settings, now
         prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
         at_ceiling = count >= self.ceiling(ctx, sstate)
-        if s.level_judge == "fork" and int(sstate["fork_due"]):
-            shed_count = int(sstate["fork_shed"])
-            gain = (psnr - float(sstate["fork_psnr"])) / doublings_shed(count, shed_count)
-            reading = f"over the last {s.fork_steps} steps, against the model trained without its {shed_count} " \
-                      f"surfels of least weight"
-            sstate = dict(sstate, fork_due=jnp.int32(0))
-        elif s.level_judge == "fork":
-            gain = -math.inf if not at_ceiling else None  # the count did not grow
-            reading = ""
-        elif s.level_judge == "shed":
-            # The first level judged sheds one doubling: the count grown before full resolution.
-            shed_count = count - prev[1] if prev[1] else count // 2
-            gain = None if at_ceiling else shed_gain(ctx, state, shed_count)
-            reading = f"without the {shed_count} surfels of least weight"
-        else:
-            first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
-            trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
-            gain = level_gain(prev, now, trend) if prev[1] else None
-            reading = f"net of {trend * 1000:.2f} dB per 1000 steps at a fixed count"
+        gain, reading = (None, "") if at_ceiling else self.level_reading(ctx, state, sstate, now, prev)
         sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
-                      checked_psnr=jnp.float32(psnr))
+                      checked_psnr=jnp.float32(psnr), fork_due=jnp.int32(0))
         if at_ceiling or (gain is not None and gain < s.min_gain_db):
             if at_ceiling:
                 why = f"the ceiling of {self.ceiling(ctx, sstate)}"
