@@ -465,6 +465,27 @@ def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revisio
                                                   + "\n" for i, (t, p) in enumerate(curve)))
 
 
+def test_auto_recipe_report_gives_an_ablation_with_seeds_its_mean_beside_the_recipes(tmp_path):
+    from benchmark_scripts import load_benchmark
+
+    report = load_benchmark("auto_recipe")
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    _fake_run(runs, "seg", "auto", 28.0, 30000, 700.0, [(700, 28.0)])
+    _fake_run(runs, "seg", "auto_seed1", 27.6, 32000, 640.0, [(640, 27.6)], seed=1)
+    judge = "[strategy]\nname = 'auto'\nlevel_judge = 'shed'\n"
+    _fake_run(runs, "seg", "auto_shed", 29.0, 55000, 1000.0, [(1000, 29.0)], settings=judge)
+    _fake_run(runs, "seg", "auto_shed_seed1", 28.6, 54000, 1100.0, [(1100, 28.6)], seed=1, settings=judge)
+    _fake_run(runs, "seg", "auto_nores", 27.5, 31000, 900.0, [(900, 27.5)], settings="res_schedule = 'none'\n")
+    ref = tmp_path / "ref.json"
+    ref.write_text(json.dumps({"rows": []}))
+    assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
+    text = (out / "README.md").read_text()
+    # One row for the two seeds of auto_shed (28.80 against the recipe's 27.80), none for auto_nores.
+    assert ("| seg | auto_shed | 2 | 28.80 ± 0.28 | 27.80 ± 0.28 (2) | +1.00 | - | 54,500 ± 707 | 31,000 ± 1,414 | "
+            "1050 ± 71 | 670 ± 42 |") in text
+    assert "| seg | auto_nores | 1 |" not in text and report.check(out) == ""
+
+
 def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp_path):
     from benchmark_scripts import load_benchmark
 

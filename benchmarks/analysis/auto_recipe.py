@@ -228,6 +228,31 @@ def ablations(runs: list[dict]) -> list[dict]:
     return out
 
 
+def ablation_of(variant: str) -> str:
+    """The ablation a run belongs to: its variant without a "_seedN" ending."""
+    head, _, tail = variant.rpartition("_seed")
+    return head if head and tail.isdigit() else variant
+
+
+def seeded_ablations(runs: list[dict]) -> list[dict]:
+    """Each ablation run with more than one seed ("auto_X", "auto_X_seedN"): the mean and spread
+    over its seeds beside the same scene's recipe seeds'."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in runs:
+        if not is_seed(r["variant"]):
+            groups.setdefault((r["scene"], ablation_of(r["variant"])), []).append(r)
+    out = []
+    for (scene, name), rs in sorted(groups.items()):
+        recipe = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
+        if len(rs) < 2 or not recipe:
+            continue
+        out.append({"scene": scene, "variant": name, "seeds": len(rs), "recipe_seeds": len(recipe)}
+                   | {k: spread([r.get(k) for r in rs]) for k in ("psnr", "lpips", "num_gaussians", "train_seconds")}
+                   | {f"recipe_{k}": spread([r.get(k) for r in recipe]) for k in ("psnr", "num_gaussians",
+                                                                                   "train_seconds")})
+    return out
+
+
 def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dict]:
     scenes = sorted({r["scene"] for r in runs if is_seed(r["variant"])})
     out = []
@@ -316,6 +341,11 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
 
 def fmt(x, spec=".2f", none="-"):
     return none if x is None else format(x, spec)
+
+
+def fmt_spread(x: dict, spec: str = ".2f") -> str:
+    """A spread() as "mean ± std" ("-" when it has no values)."""
+    return f"{x['mean']:{spec}} ± {x['std']:{spec}}" if x["n"] else "-"
 
 
 def surfels_cell(r: dict) -> str:
@@ -420,6 +450,18 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   f"{', '.join(a.get('differs_in') or []) or '-'} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
+    seeded = seeded_ablations(runs)
+    if seeded:
+        lines += ["", "## Ablations over seeds (mean ± sample std; the same scene's recipe seeds beside them)", "",
+                  "| scene | variant | seeds | test PSNR | recipe's PSNR (seeds) | change (dB) | LPIPS | surfels | "
+                  "recipe's surfels | train s | recipe's train s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {a['scene']} | {a['variant']} | {a['seeds']} | {fmt_spread(a['psnr'])} | "
+                  f"{fmt_spread(a['recipe_psnr'])} ({a['recipe_seeds']}) | "
+                  f"{a['psnr']['mean'] - a['recipe_psnr']['mean']:+.2f} | {fmt_spread(a['lpips'], '.3f')} | "
+                  f"{fmt_spread(a['num_gaussians'], ',.0f')} | {fmt_spread(a['recipe_num_gaussians'], ',.0f')} | "
+                  f"{fmt_spread(a['train_seconds'], '.0f')} | {fmt_spread(a['recipe_train_seconds'], '.0f')} |"
+                  for a in seeded]
     cc = any(r.get("psnr_cc") is not None for r in runs)  # the metric is newer than some runs
     heads = ["scene", "variant", "seed", "test PSNR"] + ["colour-corrected PSNR"] * cc + [
         "L1", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)", "train PSNR", "surfels", "train s", "steps",
