@@ -434,7 +434,8 @@ class TrainingSession:
         return {"psnr": float(np.mean(psnrs)), "l1": float(np.mean(l1s)), "num_views": len(psnrs)}
 
     def check(self, step: int) -> dict:
-        """A validation check after `step` steps: the strategy's hook, then the stop rule."""
+        """A validation check after `step` steps: the strategy's hook, then the stop rule, whose
+        anneal or stop a strategy may turn into growth (on_plateau: the plateau judge)."""
         # "early": a check the stop rule does not count (up to stop_after or full resolution, whichever
         # is later); the strategy's count rule does not judge by it either.
         val = self.validate() | {"early": step <= self.rule.stop_after}
