@@ -188,6 +188,12 @@ def doublings_shed(count: int, shed_count: int) -> float:
     return math.log2(count / (count - shed_count)) if 0 < shed_count < count else 0.0
 
 
+def level_share(count: int, prev_count: int) -> int:
+    """The surfels a level added since the previous level judged (0: none yet), which "shed" and
+    "fork" remove; for the first level, half the count grown before full resolution."""
+    return count - prev_count if prev_count else count // 2
+
+
 def shed_gain(ctx, state: TrainState, shed_count: int) -> float:
     """Validation PSNR per doubling of the count that the model loses, as it stands, without its
     `shed_count` live surfels of least blending weight over the training views (nothing retrained)."""
@@ -296,8 +302,7 @@ class AutoStrategy(MCMCStrategy):
             return self.judge_level(ctx, state, sstate, now)
         if due:
             return sstate, {}
-        prev_count = int(sstate["checked_count"])
-        shed_count = count - prev_count if prev_count else count // 2
+        shed_count = level_share(count, int(sstate["checked_count"]))
         if not doublings_shed(count, shed_count) or count >= self.ceiling(ctx, sstate):
             return self.judge_level(ctx, state, sstate, now)
         fork = fork_psnr(ctx, state, shed_count, it, s.fork_steps)
@@ -317,33 +322,17 @@ class AutoStrategy(MCMCStrategy):
             # A level still growing, or just grown: the checks that found validation flat were made
             # before it could use its surfels. Its plateau is yet to come.
             return sstate, True, {}
-        count = state.num_active()
-        prev = (int(sstate["checked_step"]), int(sstate["checked_count"]), float(sstate["checked_psnr"]))
-        sstate = dict(sstate, checked_step=jnp.int32(it), checked_count=jnp.int32(count),
-                      checked_psnr=jnp.float32(best_psnr))
-        if count >= self.ceiling(ctx, sstate):
-            why = f"the ceiling of {self.ceiling(ctx, sstate)}"
-        elif prev[1] and count <= prev[1]:
-            why = f"the count did not grow since the last level ({prev[1]} -> {count} surfels)"
-        elif prev[1] and (gain := (best_psnr - prev[2]) / math.log2(count / prev[1])) < s.min_gain_db:
-            why = (f"{gain:.2f} dB of validation PSNR per doubling between the plateaus at {prev[1]} and {count} "
-                   f"surfels (under {s.min_gain_db})")
-        else:
-            target = math.ceil(count * 2.0 ** s.level_doublings)
-            paid = f"{(best_psnr - prev[2]) / math.log2(count / prev[1]):.2f} dB per doubling since {prev[1]} " \
-                   f"surfels" if prev[1] else "the first plateau"
-            log.info("step %d: validation flat at %.2f dB with %d surfels (%s); growing to %d", it, best_psnr,
-                     count, paid, target)
-            return dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target)), True, {}
-        log.info("step %d: the count stops growing at %d surfels: %s", it, count, why)
-        sstate = dict(sstate, growing=jnp.int32(0), holding=jnp.int32(0), frozen_at=jnp.int32(it),
-                      compact_due=jnp.int32(int(s.compact_at_freeze)))
-        return sstate, False, {"growth_stopped": count}
+        log.info("step %d: validation flat at %.2f dB with %d surfels", it, best_psnr, state.num_active())
+        sstate, info = self.judge_level(ctx, state, sstate, (it, state.num_active(), best_psnr))
+        return sstate, bool(sstate["growing"]), info
 
     def level_reading(self, ctx, state, sstate, now, prev) -> tuple[float | None, str]:
         """(the level's validation PSNR per doubling, by the judge's reading; None where there is
         nothing to read, which grows the next level; the reading in words)."""
         s, (it, count, psnr) = self.settings, now
+        if s.level_judge == "plateau":  # both levels trained until flat: no time trend to net out
+            return (level_gain(prev, now, 0.0) if prev[1] else None,
+                    f"between the plateaus at {prev[1]} and {count} surfels")
         if s.level_judge == "fork":
             if not int(sstate["fork_due"]):
                 return -math.inf, ""  # fork() judges at once only a count that did not grow
@@ -352,7 +341,7 @@ class AutoStrategy(MCMCStrategy):
                     f"over the last {s.fork_steps} steps, against the model trained without its {shed_count} "
                     f"surfels of least weight")
         if s.level_judge == "shed":
-            shed_count = count - prev[1] if prev[1] else count // 2
+            shed_count = level_share(count, prev[1])
             return shed_gain(ctx, state, shed_count), f"without the {shed_count} surfels of least weight"
         first = (int(sstate["hold_first_step"]), float(sstate["hold_first_psnr"]))
         trend = (psnr - first[1]) / (it - first[0]) if it > first[0] else 0.0
