@@ -283,6 +283,25 @@ def test_plateau_judge_grows_at_each_plateau_while_the_last_level_paid():
     assert strategy.on_plateau(small, SimpleNamespace(num_active=lambda: 20000), s0, 4000, 26.0)[1] is False
 
 
+def test_a_level_grown_after_the_first_trains_with_the_means_rate_rewound():
+    from types import SimpleNamespace
+
+    from ghsplat_jax.train.strategies import make_strategy
+
+    ctx = SimpleNamespace(width=400, height=400)
+    for rewind in (False, True):
+        strategy = make_strategy(TrainConfig().replace(recipe="auto", **{"strategy.level_judge": "plateau",
+                                                                         "strategy.rewind_lr": rewind}))
+        sstate = strategy.init_state(100)
+        for it in (3000, 3250, 3500):  # the first level's checks at full resolution: the first begins it
+            sstate, _ = strategy.on_validation(ctx, None, sstate, it, {"psnr": 24.0, "early": False})
+        assert strategy.schedule_step(sstate, 4000) == 4000  # the first level: the schedule as it is
+        sstate, grows, _ = strategy.on_plateau(ctx, SimpleNamespace(num_active=lambda: 14000), sstate, 5000, 26.0)
+        assert grows and int(sstate["level_target"]) == 28000
+        # The next level trains from the rate of step 3,000 on; without the setting, as scheduled.
+        assert [strategy.schedule_step(sstate, t) for t in (5000, 5100)] == ([3000, 3100] if rewind else [5000, 5100])
+
+
 def test_the_stop_rule_waits_while_the_strategy_grows_at_a_plateau():
     from ghsplat_jax.train.stopping import PlateauRule
 
@@ -431,7 +450,8 @@ def test_a_tiny_run_judged_by_forks_freezes_its_count_only_after_the_fork_traine
     assert np.isfinite(np.asarray(result.surfels.means)).all()
 
 
-def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_path):
+@pytest.mark.parametrize("rewind_lr", [False, True])
+def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_path, rewind_lr):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
@@ -439,7 +459,8 @@ def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_
     cfg = TrainConfig().replace(recipe="auto", steps=600, val_every=10, stop_patience=2, stop_min_gain=0.5,
                                 stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
                                 sh_degree=1, progress=False, checkpoint_every=1000, pair_capacity=16384)
-    cfg = cfg.replace(**{"strategy.level_judge": "plateau", "strategy.min_gain_db": 5.0})
+    cfg = cfg.replace(**{"strategy.level_judge": "plateau", "strategy.min_gain_db": 5.0,
+                         "strategy.rewind_lr": rewind_lr})
     metrics = train_and_evaluate(cfg, tmp_path / "run", dataset=ds)
     rows = [json.loads(x) for x in (tmp_path / "run" / "stats.jsonl").read_text().splitlines()]
     grew = [r["step"] for r in rows if r.get("stop_action") == "grow"]
@@ -451,6 +472,11 @@ def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_
     counts = {r["step"]: r["num_surfels"] for r in rows}
     assert counts[frozen] > counts[grew[0]] and len({n for t, n in counts.items() if t >= frozen}) == 1
     assert metrics["finished"] and math.isfinite(metrics["test"]["psnr"])
+    # The step after a growth trains at the rate of the first level's start when rewound, else
+    # at the schedule's (which only decays). stats.jsonl's step s is the 0-based step s - 1.
+    lr = {r["step"]: r["means_lr"] for r in rows}
+    assert (lr[grew[0] + 1] > lr[grew[0]]) == rewind_lr
+    assert all(lr[t + 1] <= lr[t] for t in lr if t + 1 in lr and t not in grew)  # else it only decays
 
 
 def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):
@@ -530,25 +556,29 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
 def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
     """A stopped compact_curve run (a test curve, no metrics.json) is read at fixed training times
     up to where it stopped, never beyond; the auto seeds are read at their final model once they
-    stopped themselves; the README names how far the curve reached and its code revision."""
+    stopped themselves; the README names how far the curve reached and its code revision. The
+    mcmc_full control's curve is read under its own name."""
     from benchmark_scripts import load_benchmark
 
     report = load_benchmark("auto_recipe")
     runs, out = tmp_path / "runs", tmp_path / "out"
     _fake_run(runs, "seg", "auto", 28.0, 30000, 500.0, [(100, 25.5), (290, 27.2), (480, 28.0)])
-    curve = runs / "seg" / "compact_curve"
-    curve.mkdir(parents=True)
-    (curve / "test_curve.jsonl").write_text("".join(
-        json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p, "num_surfels": 9000, "code_revision": "f00d"})
-        + "\n" for i, (t, p) in enumerate([(60, 22.0), (200, 24.0), (400, 26.0)])))
+    for folder, points in (("compact_curve", [(60, 22.0), (200, 24.0), (400, 26.0)]), ("mcmc_full", [(150, 23.0)])):
+        curve = runs / "seg" / folder
+        curve.mkdir(parents=True)
+        (curve / "test_curve.jsonl").write_text("".join(
+            json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p, "num_surfels": 9000, "code_revision": "f00d"})
+            + "\n" for i, (t, p) in enumerate(points)))
     ref = tmp_path / "ref.json"
     ref.write_text(json.dumps({"rows": []}))
     assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
     res = json.loads((out / "results.json").read_text())
-    (c,) = res["reference_curves"]
+    c, control = res["reference_curves"]
     assert c["variant"] == "compact" and not c["finished"] and c["last_step"] == 1500
+    assert control["variant"] == "mcmc_full" and control["last_step"] == 500
     at = res["summary"][0]["equal_time"]
     assert at["compact"] == {"120": 22.0, "300": 24.0, "600": None}  # stopped at 400 s: 10 min not reached
+    assert at["mcmc_full"] == {"120": None, "300": None, "600": None}  # nothing scored by 2 min; stopped before 5
     assert at["auto"]["600"]["mean"] == 28.0 and at["auto"]["120"]["mean"] == 25.5
     text = (out / "README.md").read_text()
     assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | f00d |" in text

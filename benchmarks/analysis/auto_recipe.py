@@ -6,19 +6,19 @@ time, per scene, from the runs' own records (every number below is read from fil
     python benchmarks/analysis/auto_recipe.py --check    # OUT/README.md against OUT/results.json
 
 Reads every RUNS/SCENE/VARIANT folder whose variant starts with "auto" (metrics.json, config.toml,
-test_curve.jsonl: the test views scored while training, that time left out of the training
-seconds) and the default and compact rows of the reference results. Variants "auto" and
-"auto_seedN" are the recipe's seeds; any other "auto_X" is an ablation, compared with the same
-scene's seed-0 run. A run interrupted before it finished (a test curve, no metrics.json) is
-listed apart, with its last scored step. The variants "default_curve" and "compact_curve" (the
-reference variants trained with a test curve, often only their first steps: --stop-at) give the
-reference curves: drawn beside the auto runs and read at fixed training times (the equal-time
-table), finished or not, each with the step it reached. Runs already in OUT/results.json whose folder is gone
-are kept from there (run folders do not outlive the machine they ran on). Writes
-OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
+test_curve.jsonl: the test views scored while training, that time left out of the training seconds)
+and the default and compact rows of the reference results. Variants "auto" and "auto_seedN" are the
+recipe's seeds; any other "auto_X" is an ablation, compared with the same scene's seed-0 run. A run
+interrupted before it finished (a test curve, no metrics.json) is listed apart, with its last scored
+step. The variants "default_curve" and "compact_curve" (the reference variants trained with a test
+curve, often only their first steps: --stop-at) and "mcmc_full" (the control: MCMC at the default's
+count) give the reference curves: drawn beside the auto runs and read at fixed training times (the
+equal-time table), finished or not, each with the step it reached. Runs already in OUT/results.json
+whose folder is gone are kept from there (run folders do not outlive the machine they ran on).
+Writes OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
 machine record of this report and of each run), OUT/README.md (generated: tables) and
-OUT/psnr_vs_time_SCENE.png. --check needs no run folders: it renders the README from the
-committed OUT/results.json and exits 1 with a diff when OUT/README.md differs (no JAX import).
+OUT/psnr_vs_time_SCENE.png. --check needs no run folders: it renders the README from the committed
+OUT/results.json and exits 1 with a diff when OUT/README.md differs (no JAX import).
 
 The goal (self-sizing issue): per scene, the auto recipe's mean test PSNR over its seeds at least
 the compact variant's, its mean count at most compact's, and each run at most 10 minutes of
@@ -73,8 +73,11 @@ def read_jsonl(path: Path) -> list[dict]:
     return rows
 
 
-CURVE_VARIANTS = {"default_curve": "default", "compact_curve": "compact"}  # run folder -> reference variant
+# run folder -> reference variant; mcmc_full: the count-against-regularisation control (MCMC at the
+# default's count), trained with a test curve under its own name
+CURVE_VARIANTS = {"default_curve": "default", "compact_curve": "compact", "mcmc_full": "mcmc_full"}
 EQUAL_TIMES_S = (120.0, 300.0, 600.0)  # the equal-time table's training times
+REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray"), "mcmc_full": ("^", "saddlebrown")}
 
 
 def curve_points(path: Path) -> list[dict]:
@@ -142,12 +145,12 @@ def auto_runs(runs_root: Path, defaults: dict | None = None) -> list[dict]:
 
 
 def reference_rows(path: Path) -> dict[tuple[str, str], dict]:
-    """(scene, variant) -> the reference results' test row, for the default and compact variants."""
+    """(scene, variant) -> the reference results' test row, for the reference variants."""
     if not path.is_file():
         return {}
     rows = json.loads(path.read_text())["rows"]
     return {(r["scene"], r["variant"]): r for r in rows
-            if r.get("variant") in ("default", "compact") and r.get("split", "test") == "test"}
+            if r.get("variant") in REFERENCE_STYLE and r.get("split", "test") == "test"}
 
 
 def spread(values: list[float]) -> dict:
@@ -294,7 +297,6 @@ def run_label(r: dict) -> str:
     return f"{name} ({r['num_gaussians']:,} surfels)"
 
 
-REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray")}
 
 
 def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dict] = ()) -> None:
@@ -428,7 +430,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     if curves:
         lines += ["", "## Equal training time: test PSNR (dB) after 2, 5 and 10 min", "",
                   "The reference variants trained with a test curve on the same machine as the auto runs "
-                  "(`default_curve`, `compact_curve`); '-' where a curve stopped before that time.", "",
+                  "(`default_curve`, `compact_curve`, `mcmc_full`); '-' where a curve stopped before that time.", "",
                   "| scene | variant | " + " | ".join(f"{t / 60:g} min" for t in EQUAL_TIMES_S)
                   + " | curve reaches (step) | code |", "|---|---|" + "---|" * len(EQUAL_TIMES_S) + "---|---|"]
         for s in summary:

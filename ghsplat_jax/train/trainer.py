@@ -358,9 +358,13 @@ class TrainingSession:
         rows = exposure_mod.corrections_report(self.state.exposure, self.view_names)
         return {"step": int(self.state.step), "summary": exposure_mod.corrections_summary(rows), "views": rows}
 
+    def means_lr_at(self, step: int) -> float:
+        """The scheduled means learning rate of training step `step` (before the stop rule's annealing)."""
+        return self.means_lr(self.strategy.schedule_step(self.sstate, step))
+
     def context(self) -> StrategyContext:
         return StrategyContext(extent=self.extent, Ks=self.Ks, w2cs=self.w2cs, width=self.width, height=self.height,
-                               pair_capacity=self.pair_capacity, means_lr=self.means_lr, raster=self.config.raster,
+                               pair_capacity=self.pair_capacity, means_lr=self.means_lr_at, raster=self.config.raster,
                                render_fn=self.render_fn,
                                validate=(lambda state: self.validate(state)["psnr"]) if self.config.val_every else None,
                                train_copy=self.train_copy)
@@ -468,13 +472,13 @@ class TrainingSession:
         v, image, K, width, height = self.view_at(step)
         while True:
             rcfg = step_raster_config(self.config, self.pair_capacity, step)
-            lr = jnp.float32(self.means_lr(step) * self.stop_state["lr_scale"])
+            lr = jnp.float32(self.means_lr_at(step) * self.stop_state["lr_scale"])
             per_view = state.pose is not None or state.exposure is not None
             view = {"view": jnp.int32(v)} if per_view else {}
             new, m = self.step_fn(state, image, K, self.w2cs[v], lr, rcfg, width, height, **view)
             m = jax.device_get(m)
             if int(m["overflow"]) <= 0:
-                return v, new, {k: np.asarray(val).item() for k, val in m.items()}
+                return v, new, {k: np.asarray(val).item() for k, val in m.items()} | {"means_lr": float(lr)}
             self.pair_capacity = regrown_capacity(self.pair_capacity, int(m["num_pairs"]))
             log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
                      self.pair_capacity)

@@ -100,6 +100,10 @@ class AutoSettings(MCMCSettings):
             by the best validation PSNR at its plateau against the previous level's, both trained
             until the steps gain nothing more.
         fork_steps: the steps the "fork" judge trains its shed model (the count holds meanwhile).
+        rewind_lr: each level grown after the first trains with the means' learning-rate schedule
+            rewound to the step where the first level began (its first check at full resolution),
+            so a level grown late moves its new surfels as far as the first level did (and the
+            position noise, which follows that rate, explores as far).
         max_surfels: a safety ceiling on the count (0: `ceiling_per_pixel` x the pixels of one
             training image); the validation rule is meant to stop growth well before it.
         ceiling_per_pixel: the ceiling when max_surfels is 0.
@@ -118,6 +122,7 @@ class AutoSettings(MCMCSettings):
     growth_weight: str = "error"
     level_judge: str = "trend"
     fork_steps: int = 500
+    rewind_lr: bool = False
     ceiling_per_pixel: float = 2.0
     compact: bool = True
     compact_max_loss_db: float = 0.05
@@ -233,6 +238,7 @@ class AutoStrategy(MCMCStrategy):
                     hold_first_step=jnp.int32(0), hold_first_psnr=jnp.float32(0.0),
                     checked_step=jnp.int32(0), checked_count=jnp.int32(0), checked_psnr=jnp.float32(0.0),
                     fork_due=jnp.int32(0), fork_psnr=jnp.float32(0.0), fork_shed=jnp.int32(0),
+                    first_level_step=jnp.int32(0), lr_rewind=jnp.int32(0),
                     frozen_at=jnp.int32(0), compacted_from=jnp.int32(0), compacted_to=jnp.int32(0),
                     compact_val_before=jnp.float32(0.0), compact_val_after=jnp.float32(0.0),
                     compact_due=jnp.int32(0), freeze_compacted_from=jnp.int32(0), freeze_compacted_to=jnp.int32(0))
@@ -278,7 +284,7 @@ class AutoStrategy(MCMCStrategy):
             # row2_x1's first level was judged at step 2,000 and froze the count at 4,766 surfels.
             return sstate, {}
         if not int(sstate["level_target"]) and not bool(sstate["holding"]):
-            sstate = start_hold(sstate)  # full resolution: hold
+            sstate = dict(start_hold(sstate), first_level_step=jnp.int32(it))  # full resolution: hold
         if self.settings.level_judge == "plateau":  # judged at validation plateaus (on_plateau)
             return (dict(sstate, hold_seen=sstate["hold_seen"] + 1) if bool(sstate["holding"]) else sstate), {}
         if not bool(sstate["holding"]):
@@ -371,7 +377,14 @@ class AutoStrategy(MCMCStrategy):
         if gain is not None:
             log.info("step %d: %.2f dB of validation PSNR per doubling %s at %d surfels; growing to %d",
                      it, gain, reading, count, target)
-        return dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target)), {}
+        sstate = dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target))
+        if s.rewind_lr and (rewind := it - int(sstate["first_level_step"])) > 0:
+            log.info("step %d: the means learning rate rewound to step %d's", it, it - rewind)
+            sstate = dict(sstate, lr_rewind=jnp.int32(rewind))
+        return sstate, {}
+
+    def schedule_step(self, sstate: dict, step: int) -> int:
+        return step - int(sstate["lr_rewind"])
 
     def at_end(self, ctx, state, sstate):
         state, sstate, info = super().at_end(ctx, state, sstate)

@@ -164,6 +164,11 @@ class Strategy:
         """After a validation check (`val`: the held-out views' metrics): (sstate, info)."""
         return sstate, {}
 
+    def schedule_step(self, sstate: dict, step: int) -> int:
+        """The step whose means learning rate training step `step` uses (a strategy may rewind
+        the schedule: the auto strategy's `rewind_lr`)."""
+        return step
+
     def on_plateau(self, ctx: StrategyContext, state: TrainState, sstate: dict, it: int, best_psnr: float):
         """When the stop rule would anneal or stop (validation flat; `best_psnr` its best so far):
         (sstate, True to grow instead and keep the rule from acting, info)."""
