@@ -378,7 +378,8 @@ class AutoStrategy(MCMCStrategy):
             log.info("step %d: %.2f dB of validation PSNR per doubling %s at %d surfels; growing to %d",
                      it, gain, reading, count, target)
         sstate = dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target))
-        if s.rewind_lr and (rewind := it - int(sstate["first_level_step"])) > 0:
+        first = int(sstate["first_level_step"])  # 0: not yet at full resolution
+        if s.rewind_lr and first and (rewind := it - first) > 0:
             log.info("step %d: the means learning rate rewound to step %d's", it, it - rewind)
             sstate = dict(sstate, lr_rewind=jnp.int32(rewind))
         return sstate, {}
