@@ -7,18 +7,18 @@ time, per scene, from the runs' own records (every number below is read from fil
 
 Reads every RUNS/SCENE/VARIANT folder whose variant starts with "auto" (metrics.json, config.toml,
 test_curve.jsonl: the test views scored while training, that time left out of the training seconds)
-and the default and compact rows of the reference results. Variants "auto" and "auto_seedN" are the
-recipe's seeds; any other "auto_X" is an ablation, compared with the same scene's seed-0 run. A run
-interrupted before it finished (a test curve, no metrics.json) is listed apart, with its last scored
-step. The variants "default_curve" and "compact_curve" (the reference variants trained with a test
-curve, often only their first steps: --stop-at) and "mcmc_full" (the control: MCMC at the default's
-count) give the reference curves: drawn beside the auto runs and read at fixed training times (the
-equal-time table), finished or not, each with the step it reached. Runs already in OUT/results.json
-whose folder is gone are kept from there (run folders do not outlive the machine they ran on).
-Writes OUT/results.json (every run, the per-scene mean and spread over seeds, the goal checks, the
-machine record of this report and of each run), OUT/README.md (generated: tables) and
-OUT/psnr_vs_time_SCENE.png. --check needs no run folders: it renders the README from the committed
-OUT/results.json and exits 1 with a diff when OUT/README.md differs (no JAX import).
+and the reference results' rows of the variants it draws (REFERENCE_STYLE). Variants "auto" and
+"auto_seedN" are the recipe's seeds; any other "auto_X" is an ablation, compared with the same
+scene's seed-0 run. A run interrupted before it finished (a test curve, no metrics.json) is listed
+apart, with its last scored step. The variants "default_curve" and "compact_curve" (the reference
+variants trained with a test curve, often only their first steps: --stop-at) and "mcmc_full" (the
+control: MCMC at the default's count) give the reference curves: drawn beside the auto runs and read
+at fixed training times (the equal-time table), finished or not, each with the step it reached. Runs
+already in OUT/results.json whose folder is gone are kept from there (run folders do not outlive the
+machine they ran on). Writes OUT/results.json (every run, the per-scene mean and spread over seeds,
+the goal checks, the machine record of this report and of each run), OUT/README.md (generated:
+tables) and OUT/psnr_vs_time_SCENE.png. --check needs no run folders: it renders the README from the
+committed OUT/results.json and exits 1 with a diff when OUT/README.md differs (no JAX import).
 
 The goal (self-sizing issue): per scene, the auto recipe's mean test PSNR over its seeds at least
 the compact variant's, its mean count at most compact's, and each run at most 10 minutes of
@@ -295,8 +295,6 @@ def run_label(r: dict) -> str:
         return r["label"]
     name = f"auto, seed {r['seed']}" if is_seed(r["variant"]) else r["variant"]
     return f"{name} ({r['num_gaussians']:,} surfels)"
-
-
 
 
 def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dict] = ()) -> None:

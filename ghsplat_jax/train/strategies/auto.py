@@ -382,13 +382,14 @@ class AutoStrategy(MCMCStrategy):
                      it, gain, reading, count, target)
         sstate = dict(sstate, holding=jnp.int32(0), level_target=jnp.int32(target))
         first = int(sstate["first_level_step"])  # 0: not yet at full resolution
-        if s.rewind_lr and first and (rewind := it - first) > 0:
-            log.info("step %d: the means learning rate rewound to step %d's", it, it - rewind)
-            sstate = dict(sstate, lr_rewind=jnp.int32(rewind))
+        if s.rewind_lr and 0 < first < it:
+            log.info("step %d: the means learning rate rewound to step %d's", it, first)
+            sstate = dict(sstate, lr_rewind=jnp.int32(it - first))
         return sstate, {}
 
     def schedule_step(self, sstate: dict, step: int) -> int:
-        return step - int(sstate["lr_rewind"])
+        # Called every step: without the setting, no read of the strategy state.
+        return step - int(sstate["lr_rewind"]) if self.settings.rewind_lr else step
 
     def at_end(self, ctx, state, sstate):
         state, sstate, info = super().at_end(ctx, state, sstate)
