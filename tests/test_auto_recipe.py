@@ -543,9 +543,14 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
     assert (normal2k["against"], normal2k["differs_in"]) == ("auto", ["normal_from"])
     assert (old["against"], old["differs_in"]) == ("auto_normal2k", ["res_schedule"])
     assert old["delta_psnr_db"] == pytest.approx(-1.0)
-    # A run folder that is gone keeps its row from the previous report.
+    # A run folder that is gone keeps its row from the previous report, and a setting newer than
+    # that report reads as its default (as the run trained), not as a difference.
     import shutil
     shutil.rmtree(runs / "seg" / "auto_seed1")
+    shutil.rmtree(runs / "seg" / "auto")
+    older = dict(first, runs=[dict(r, settings={k: v for k, v in r["settings"].items() if k != "exposure_lr"})
+                              for r in first["runs"]])
+    (out / "results.json").write_text(json.dumps(older))
     assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
     again = json.loads((out / "results.json").read_text())
     assert [r["variant"] for r in again["runs"]] == ["auto", "auto_nores", "auto_normal2k", "auto_old_nores",

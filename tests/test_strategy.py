@@ -253,6 +253,38 @@ def test_mcmc_and_budget_training_stay_under_the_cap(tmp_path):
             assert counts[-1] == 150 and int(res.strategy_state["added"]) == 150 - res.initial_count
 
 
+def test_the_mcmc_pool_grows_with_the_count_and_stops_at_the_cap_bucket():
+    from types import SimpleNamespace
+
+    from ghsplat_jax.train.state import growth_bucket
+    from ghsplat_jax.train.strategies import make_strategy
+
+    def mcmc(max_surfels):
+        return make_strategy(CONFIG.replace(strategy="mcmc", densify_from=0, densify_every=1, densify_until=100,
+                                            **{"strategy.max_surfels": max_surfels, "strategy.grow_rate": 0.5,
+                                               "strategy.noise_lr": 0.0}).resolved())
+
+    rng = np.random.default_rng(0)
+    assert mcmc(100).initial_pool(random_scene(30, seed=0, degree=1), rng)[1] == 100  # a cap under the first pool
+    strategy = mcmc(6000)
+    init = random_scene(3000, seed=0, degree=1)
+    _, first = strategy.initial_pool(init, rng)
+    assert first == 4096  # not the cap: free slots cost every step the per-surfel work of live ones
+    params, active = pad_params(init, first)
+    state = new_state(params, active, optim.make_optimizers(CONFIG))
+    ctx = SimpleNamespace(width=32, height=24, extent=1.0, means_lr=lambda it: 1e-4, validate=None)
+    sstate = strategy.init_state(3000)
+    counts, pools = [], []
+    for it in range(1, 4):
+        state, sstate, _ = strategy.refine(ctx, state, sstate, it)
+        counts.append(state.num_active())
+        pools.append(state.capacity)
+    assert counts == [4500, 6000, 6000]  # 3000 x 1.5, then the cap
+    assert pools == [growth_bucket(6000)] * 3  # the cap's bucket (6,144 slots on a CPU), not a doubling to 8,192
+    for leaf in jax.tree_util.tree_leaves(state.params):
+        assert np.all(np.isfinite(np.asarray(leaf)[np.asarray(state.active)]))
+
+
 @pytest.mark.slow  # three MCMC runs; test_train_loop.py checks resume of the default strategy in make test
 def test_resume_restores_the_strategy_state(tmp_path):
     cfg = CONFIG.replace(strategy=dict(name="mcmc", max_surfels=250, grow_rate=0.2, contrib_prune_every=8,

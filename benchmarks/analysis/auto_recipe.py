@@ -525,8 +525,12 @@ def main(argv=None) -> int:
     from ghsplat_jax.io_utils import atomic_write, code_revision, write_json
     from ghsplat_jax.train.config import TrainConfig
 
-    runs, unfinished = auto_runs(args.runs, flat(TrainConfig().to_dict())), unfinished_runs(args.runs)
-    runs = sorted(runs + carried_runs(args.out / "results.json", runs), key=lambda r: (r["scene"], r["variant"]))
+    defaults = flat(TrainConfig().to_dict())
+    runs, unfinished = auto_runs(args.runs, defaults), unfinished_runs(args.runs)
+    # A carried record's settings predate the settings added since: it trained with their defaults.
+    carried = [dict(r, settings=defaults | (r.get("settings") or {}))
+               for r in carried_runs(args.out / "results.json", runs)]
+    runs = sorted(runs + carried, key=lambda r: (r["scene"], r["variant"]))
     if not runs and not unfinished:
         print(f"no auto runs under {args.runs}", file=sys.stderr)
         return 1

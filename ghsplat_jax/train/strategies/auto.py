@@ -69,9 +69,9 @@ import jax.numpy as jnp
 
 from ghsplat_jax.train import densify
 from ghsplat_jax.train.compaction import compact_model, free_slots, lowest_mask
-from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
-from ghsplat_jax.train.strategies.base import accumulated_weights, register
-from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round
+from ghsplat_jax.train.state import TrainState, fit_pool
+from ghsplat_jax.train.strategies.base import accumulated_weights, grow_pool, register
+from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round, starting_pool
 
 log = logging.getLogger("ghsplat.train")
 
@@ -231,7 +231,7 @@ class AutoStrategy(MCMCStrategy):
     caps_count: ClassVar[bool] = False
 
     def initial_pool(self, init, rng):
-        return init, growth_bucket(max(math.ceil(1.25 * init.num), 1024))
+        return init, starting_pool(init.num)
 
     def init_state(self, initial_count: int) -> dict:
         base = super(MCMCStrategy, self).init_state(initial_count)
@@ -264,11 +264,7 @@ class AutoStrategy(MCMCStrategy):
             target = int(sstate["level_target"]) or math.inf  # 0: before full resolution, no level
             cap = min(math.floor(n * (1 + s.grow_rate)), target, self.ceiling(ctx, sstate)) if adding else n
             if cap > state.capacity:
-                # Doubling: each new pool compiles the step (and the validation renders) again, and a
-                # count that grows 10% a round would cross a 1.25x bucket every other round.
-                new_cap = growth_bucket(max(2 * state.capacity, math.ceil(cap / (1.0 - c.capacity_headroom))))
-                log.info("surfel pool %d -> %d slots", state.capacity, new_cap)
-                state = grow(state, new_cap)
+                state = grow_pool(state, math.ceil(cap / (1.0 - c.capacity_headroom)))
             elif not bool(sstate["growing"]) and (fitted := fit_pool(state)) is not state:  # frozen (a hold grows on)
                 log.info("the count is final: surfel pool %d -> %d slots", state.capacity, fitted.capacity)
                 state = fitted

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from typing import Callable, ClassVar
 
 import jax
@@ -31,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ghsplat_jax.train.compaction import free_slots
-from ghsplat_jax.train.state import TrainState, render_params
+from ghsplat_jax.train.state import TrainState, grow, growth_bucket, render_params
 
 log = logging.getLogger("ghsplat.train")
 
@@ -126,6 +127,18 @@ class StrategyContext:
                                                            # a validation split; else None)
     train_copy: Callable[[TrainState, int, int], TrainState] | None = None  # (state, start, steps): a state
                                                            # trained on as the run would, hooks left out
+
+
+def grow_pool(state: TrainState, need: int, limit: float = math.inf) -> TrainState:
+    """`state` in a pool that holds `need` surfels: at least doubled when it grows (each new pool
+    compiles the step and the validation renders again, and a count growing 5-10% a round would
+    cross a 1.25x bucket every other round), but not past the bucket of `limit` (a hard cap on the
+    count, which a doubling would overshoot by up to 2x for the rest of the run)."""
+    if need <= state.capacity:
+        return state
+    new_cap = growth_bucket(max(need, min(2 * state.capacity, limit)))
+    log.info("surfel pool %d -> %d slots", state.capacity, new_cap)
+    return grow(state, new_cap)
 
 
 @dataclasses.dataclass(frozen=True)
