@@ -572,7 +572,8 @@ def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
         curve = runs / "seg" / folder
         curve.mkdir(parents=True)
         (curve / "test_curve.jsonl").write_text("".join(
-            json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p, "num_surfels": 9000, "code_revision": "f00d"})
+            json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p, "num_surfels": 9000, "code_revision": "f00d",
+                        "load_average": [2.0 + i, 2.0, 2.0]})
             + "\n" for i, (t, p) in enumerate(points)))
     ref = tmp_path / "ref.json"
     ref.write_text(json.dumps({"rows": []}))
@@ -586,7 +587,7 @@ def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
     assert at["mcmc_full"] == {"120": None, "300": None, "600": None}  # nothing scored by 2 min; stopped before 5
     assert at["auto"]["600"]["mean"] == 28.0 and at["auto"]["120"]["mean"] == 25.5
     text = (out / "README.md").read_text()
-    assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | f00d |" in text
+    assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | 4.00 | f00d |" in text  # the load beside it at its third point
     assert (out / "psnr_vs_time_seg.png").is_file()
     assert report.check(out) == ""
 

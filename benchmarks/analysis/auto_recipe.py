@@ -428,9 +428,13 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     if curves:
         lines += ["", "## Equal training time: test PSNR (dB) after 2, 5 and 10 min", "",
                   "The reference variants trained with a test curve on the same machine as the auto runs "
-                  "(`default_curve`, `compact_curve`, `mcmc_full`); '-' where a curve stopped before that time.", "",
+                  "(`default_curve`, `compact_curve`, `mcmc_full`); '-' where a curve stopped before that time. "
+                  "Highest load: the largest 1-minute load average recorded at the curve's points; a curve trained "
+                  "alone reads about the machine's core count, and more means something ran beside it, so its "
+                  "times from then on are longer than the run alone would take.", "",
                   "| scene | variant | " + " | ".join(f"{t / 60:g} min" for t in EQUAL_TIMES_S)
-                  + " | curve reaches (step) | code |", "|---|---|" + "---|" * len(EQUAL_TIMES_S) + "---|---|"]
+                  + " | curve reaches (step) | highest load | code |",
+                  "|---|---|" + "---|" * len(EQUAL_TIMES_S) + "---|---|---|"]
         for s in summary:
             for variant, at in s.get("equal_time", {}).items():
                 c = next((c for c in curves if c["scene"] == s["scene"] and c["variant"] == variant), None)
@@ -438,8 +442,10 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                 reach = ("stops itself" if c is None else
                          "end" if c["finished"] else f"{c['last_step']:,}")
                 code = "per run" if c is None else ", ".join(r[:10] for r in c["code_revisions"])
+                loads = [p["load_average"][0] for p in (c or {}).get("curve", []) if p.get("load_average")]
+                load = "per run" if c is None else fmt(max(loads) if loads else None)
                 name = f"auto (mean of {s['seeds']})" if c is None else variant
-                lines.append(f"| {s['scene']} | {name} | " + " | ".join(cells) + f" | {reach} | {code} |")
+                lines.append(f"| {s['scene']} | {name} | " + " | ".join(cells) + f" | {reach} | {load} | {code} |")
     if ablated:
         lines += ["", "## Ablations (each against the same scene's seed-0 run of the recipe, or of its previous "
                   "version, whichever it differs from in fewer settings)", "",
