@@ -587,7 +587,7 @@ def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):
     assert at["mcmc_full"] == {"120": None, "300": None, "600": None}  # nothing scored by 2 min; stopped before 5
     assert at["auto"]["600"]["mean"] == 28.0 and at["auto"]["120"]["mean"] == 25.5
     text = (out / "README.md").read_text()
-    assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | 4.00 | f00d |" in text  # the load beside it at its third point
+    assert "| seg | compact | 22.00 | 24.00 | - | 1,500 | 4.00 | f00d |" in text  # the load at its third point
     assert (out / "psnr_vs_time_seg.png").is_file()
     assert report.check(out) == ""
 
