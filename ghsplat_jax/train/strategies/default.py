@@ -112,7 +112,7 @@ class DefaultStrategy(Strategy):
 
 
 def capped_pool(max_surfels: int, init, rng) -> tuple[object, int]:
-    """Initial surfels subsampled to the cap (max_surfels, 0: 5x the initial count); pool = cap."""
+    """(initial surfels subsampled to the cap, the cap): max_surfels, 0 for 5x the initial count."""
     cap = max_surfels or 5 * init.num
     if init.num > cap:
         init = init.take(np.sort(rng.choice(init.num, cap, replace=False)))

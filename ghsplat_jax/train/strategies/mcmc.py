@@ -126,8 +126,8 @@ def mcmc_noise(state: TrainState, key: jax.Array, scale: jax.Array) -> TrainStat
 
 
 def starting_pool(initial_count: int) -> int:
-    """The first pool of a strategy whose count grows: the initial surfels and a quarter more (at
-    least 1024 slots); it grows with the count (grow_pool)."""
+    """The first pool of a strategy whose count grows: the initial surfels and a quarter more, in
+    the pool's buckets (growth_bucket); it grows with the count (grow_pool)."""
     return growth_bucket(max(math.ceil(1.25 * initial_count), 1024))
 
 
