@@ -208,7 +208,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
         base = default[seg]["psnr"]
         gain = spread([r["psnr"] - base for r in rs])
         outside = gain["min"] > 0 and gain["mean"] > 2 * gain["std"]
-        revisions = len({r.get("code_revision") for r in rs})
+        revisions = len({r["code_revision"] for r in rs if r.get("code_revision")}) or "not recorded"
         body.append([seg, len(rs), mean_sd([r["psnr"] for r in rs], ".2f"), f"{base:.2f}",
                      f"{gain['mean']:+.2f} ± {gain['std']:.2f}", f"{gain['min']:+.2f}", "yes" if outside else "no",
                      mean_sd([r["num_gaussians"] for r in rs], ",.0f"),
@@ -220,8 +220,9 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
             "segments where it has more than one seed, against the default's one run (the 2DGS default has one "
             "seed, so its own spread is not in these numbers). Its gain lies outside the seeds' spread when every "
             "seed beats the default and the mean gain exceeds twice the seeds' sample sd. Seeds trained at "
-            "different code revisions where the last column counts more than one (the later ones with the MCMC "
-            "pool grown with the count: the same relocation, growth and noise, other random draws).", ""] + table(
+            "different code revisions where the last column counts more than one (Table 1's rows do not record it "
+            "yet); seeds trained after the MCMC pool grew with the count use the same relocation, growth and noise "
+            "with other random draws.", ""] + table(
         ["segment", "seeds", "compact test PSNR (dB)", "default (1 seed)", "gain (dB)", "smallest gain",
          "outside the spread", "Gaussians", "training s", "code revisions"], body) + [""]
 
