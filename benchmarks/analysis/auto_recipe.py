@@ -49,9 +49,11 @@ SCENE_GOALS = {"llff_fern": (26.0, 1200.0), "lego": (34.4, 3600.0)}
 PSNR_LEVELS = (26.0, 27.0, 28.0, 29.0, 30.0)  # the time-to-PSNR table's levels (dB)
 
 
-def is_seed(variant: str) -> bool:
-    """Whether a variant is one of the recipe's seeds ("auto", "auto_seedN"), not an ablation."""
-    return variant == "auto" or (variant.startswith("auto_seed") and variant[9:].isdigit())
+def is_seed(variant: str, base: str = "auto") -> bool:
+    """Whether a variant is one of `base`'s seeds (`base`, "`base`_seedN"; by default the recipe's),
+    not an ablation."""
+    prefix = f"{base}_seed"
+    return variant == base or (variant.startswith(prefix) and variant[len(prefix):].isdigit())
 
 
 def carried_runs(previous: Path, present: list[dict], key: str = "runs") -> list[dict]:

@@ -197,8 +197,7 @@ def real_section(real: dict | None) -> list[str]:
 def compact_seeds_section(rows: list[dict]) -> list[str]:
     """The compact variant over its seeds ("compact", "compact_seedN"), on the segments with more
     than one, against the default's one run: does its gain lie outside the seeds' spread?"""
-    is_compact = lambda v: v == "compact" or (v.startswith("compact_seed") and v[12:].isdigit())  # noqa: E731
-    done = [r for r in rows if is_compact(r["variant"]) and r.get("psnr") is not None]
+    done = [r for r in rows if is_seed(r["variant"], "compact") and r.get("psnr") is not None]
     default = {r["scene"]: r for r in rows if r["variant"] == "default" and r.get("psnr") is not None}
     body = []
     for seg in sorted({r["scene"] for r in done}):
