@@ -615,6 +615,28 @@ def test_window_training_visits_every_window_of_every_view_once_an_epoch_at_full
     assert result.steps == 60 and np.isfinite(np.asarray(result.surfels.means)).all()
 
 
+def test_a_switch_to_a_finer_scale_sizes_the_pair_buffer_from_the_last_check(tmp_path):
+    from ghsplat_jax.train.synthetic import cached_synthetic_dataset
+    from ghsplat_jax.train.trainer import TrainingSession, pair_bucket
+
+    ds = cached_synthetic_dataset(num_views=8, width=32, height=24, num_surfels=40, test_every=4, num_points=200)
+    cfg = TrainConfig().replace(steps=60, res_schedule="spectrum", res_until=12, res_min_side=8,
+                                progress=False).resolved()
+    session = TrainingSession(cfg, tmp_path, ds, resume=False)
+    (_, coarse), (first, _) = session.schedule
+    state, count = session.state, session.state.num_active()
+    session._presize_for_scale(0, state)  # the first scale: nothing to predict from
+    session.val_pairs = (40_000, count // 2)  # a check at full resolution, when half as many surfels lived
+    capacity = session.pair_capacity
+    session._presize_for_scale(first - 1, state)  # the same scale: the buffer is left as it is
+    assert session.pair_capacity == capacity < 40_000
+    session._presize_for_scale(first, state)  # full resolution: the check's pairs, scaled by the count
+    assert session.pair_capacity == pair_bucket(80_000)
+    session.pair_capacity = capacity
+    session._presize_for_scale(first + 1, state)  # grown once, at the switch
+    assert session.pair_capacity == capacity and coarse == 2
+
+
 def test_validation_holds_out_views_only_when_enough_train():
     train, val = hold_out(list(range(16)), 8)
     assert val == [4, 12] and sorted(train + val) == list(range(16))

@@ -211,6 +211,25 @@ def test_rows_and_charts_name_an_accelerator(tmp_path):
     assert labels == ["row3_x1 (NVIDIA H200)", "row1_x1"]
 
 
+def test_each_row_names_the_machine_and_code_it_trained_with(tmp_path):
+    from ghsplat_jax.experiments.report import run_row, write_results
+    from ghsplat_jax.train.run_dir import write_metrics
+
+    gpu = {"processor": "x86_64", "cpu_count": 16, "device": "NVIDIA H200"}
+    write_metrics(tmp_path / "a", {"test": {"psnr": 29.4, "num_views": 8}, "num_gaussians": 5, "machine": gpu,
+                                   "code_revision": "0123456789" * 4}, [])
+    write_metrics(tmp_path / "b", {"test": {"psnr": 28.1, "num_views": 8}, "num_gaussians": 5}, [])  # recorded none
+    rows = [run_row(tmp_path / s, s, "default") for s in "ab"]
+    assert rows[0]["host"] == "x86_64 x16, NVIDIA H200" and rows[1]["host"] is None
+    write_results(rows, tmp_path / "out")
+    report = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert [r["code_revision"] for r in report["rows"]] == ["0123456789" * 4, None]
+    assert report["rows"][0]["machine"] == gpu and "machine" in report["report"]  # the row's, and the writer's
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "| x86_64 x16, NVIDIA H200 | 0123456 | finished |" in md and "| - | - | finished |" in md
+    assert "'-' where a run trained before runs recorded them" in md
+
+
 def test_a_time_axis_draws_one_kind_of_machine(tmp_path):
     rows = [{"scene": "a", "variant": "default", "train_seconds": 515.0, "psnr": 29.4, "num_gaussians": 9,
              "device": "NVIDIA H200"},

@@ -285,6 +285,25 @@ def test_the_mcmc_pool_grows_with_the_count_and_stops_at_the_cap_bucket():
         assert np.all(np.isfinite(np.asarray(leaf)[np.asarray(state.active)]))
 
 
+def test_the_budget_pool_grows_with_its_schedule():
+    from ghsplat_jax.train.state import growth_bucket
+    from ghsplat_jax.train.strategies import make_strategy
+
+    strategy = make_strategy(CONFIG.replace(strategy="budget", densify_from=0, densify_until=100,
+                                            **{"strategy.max_surfels": 6000}).resolved())
+    init = random_scene(3000, seed=0, degree=1)
+    _, first = strategy.initial_pool(init, np.random.default_rng(0))
+    assert first == 4096  # the initial count and a quarter, not the cap
+    params, active = pad_params(init, first)
+    state = new_state(params, active, optim.make_optimizers(CONFIG))
+    sstate = strategy.init_state(3000)
+    grown, new = strategy.max_new(None, state, sstate, 25, 3000)
+    assert new == 750 and grown.capacity == first  # a quarter of the way to the cap fits the first pool
+    grown, new = strategy.max_new(None, grown, sstate, 50, 3000)
+    assert new == 1500 and grown.capacity == growth_bucket(6000)  # grown, but not past the cap's bucket
+    np.testing.assert_array_equal(np.asarray(grown.params.means)[:3000], np.asarray(state.params.means)[:3000])
+
+
 @pytest.mark.slow  # three MCMC runs; test_train_loop.py checks resume of the default strategy in make test
 def test_resume_restores_the_strategy_state(tmp_path):
     cfg = CONFIG.replace(strategy=dict(name="mcmc", max_surfels=250, grow_rate=0.2, contrib_prune_every=8,

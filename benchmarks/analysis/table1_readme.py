@@ -194,6 +194,13 @@ def real_section(real: dict | None) -> list[str]:
             "[../auto_recipe/real/README.md](../auto_recipe/real/README.md).", ""] + seed_table(runs, "capture") + [""]
 
 
+def revision_list(rows: list[dict]) -> str:
+    """The code revisions `rows` trained at (first 7 digits), and how many recorded none."""
+    known = sorted({r["code_revision"][:7] for r in rows if r.get("code_revision")})
+    missing = sum(not r.get("code_revision") for r in rows)
+    return ", ".join(known + ([f"{missing} not recorded"] if missing else []))
+
+
 def compact_seeds_section(rows: list[dict]) -> list[str]:
     """The compact variant over its seeds ("compact", "compact_seedN"), on the segments with more
     than one, against the default's one run: does its gain lie outside the seeds' spread?"""
@@ -207,7 +214,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
         base = default[seg]["psnr"]
         gain = spread([r["psnr"] - base for r in rs])
         outside = gain["min"] > 0 and gain["mean"] > 2 * gain["std"]
-        revisions = len({r["code_revision"] for r in rs if r.get("code_revision")}) or "not recorded"
+        revisions = revision_list(rs)
         body.append([seg, len(rs), mean_sd([r["psnr"] for r in rs], ".2f"), f"{base:.2f}",
                      f"{gain['mean']:+.2f} ± {gain['std']:.2f}", f"{gain['min']:+.2f}", "yes" if outside else "no",
                      mean_sd([r["num_gaussians"] for r in rs], ",.0f"),
@@ -219,9 +226,9 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
             "segments where it has more than one seed, against the default's one run (the 2DGS default has one "
             "seed, so its own spread is not in these numbers). Its gain lies outside the seeds' spread when every "
             "seed beats the default and the mean gain exceeds twice the seeds' sample sd. Seeds trained at "
-            "different code revisions where the last column counts more than one (Table 1's rows do not record it "
-            "yet); seeds trained after the MCMC pool grew with the count use the same relocation, growth and noise "
-            "with other random draws.", ""] + table(
+            "different code revisions where the last column names more than one (a row whose run trained before "
+            "rows recorded it: \"not recorded\"); seeds trained after the MCMC pool grew with the count use the "
+            "same relocation, growth and noise with other random draws.", ""] + table(
         ["segment", "seeds", "compact test PSNR (dB)", "default (1 seed)", "gain (dB)", "smallest gain",
          "outside the spread", "Gaussians", "training s", "code revisions"], body) + [""]
 

@@ -8,7 +8,7 @@ import io
 import math
 from pathlib import Path
 
-from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
+from ghsplat_jax.io_utils import atomic_write, code_revision, machine_info, write_json
 from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
@@ -17,7 +17,7 @@ PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (27
 RESULTS_NAME = "results.json"  # an experiment's report of every row (what a later report keeps rows from)
 RESULT_COLUMNS = ("experiment", "scene", "variant", "split", "psnr", "psnr_cc", "structure_psnr", "l1", "ssim", "lpips",
                   "depth_abs_err", "normal_err_deg", "num_gaussians", "train_seconds", "step_seconds", "steps",
-                  "render_seconds_per_view", "device", "status", "run_dir")
+                  "render_seconds_per_view", "device", "host", "code_revision", "status", "run_dir")
 
 
 def run_row(run_dir, scene: str | None = None, variant: str | None = None, experiment: str = "") -> dict | None:
@@ -37,8 +37,18 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
         "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
         "render_seconds_per_view": m.get("render_seconds_per_view"), "device": m.get("device"),
+        # where and with what code the run trained, as its training recorded it (None where it did not)
+        "machine": m.get("machine"), "host": host_label(m.get("machine")), "code_revision": m.get("code_revision"),
         "run_dir": str(run_dir),
     }
+
+
+def host_label(machine: dict | None) -> str | None:
+    """A run's machine in a few words (processor, cores, device), so a table shows which rows
+    share one; None where the run recorded no machine."""
+    if not machine:
+        return None
+    return f"{machine.get('processor') or 'unknown CPU'} x{machine.get('cpu_count')}, {machine.get('device') or 'cpu'}"
 
 
 def collect_runs(run_dirs) -> list[dict]:
@@ -57,6 +67,8 @@ _FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "psnr_cc": "{:.2f}", "structure_ps
 def _fmt(key: str, v) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
+    if key == "code_revision":  # a sha's first 7 digits name it in a table ("+dirty" kept)
+        return v[:7] + v[40:]
     if key == "num_gaussians":
         v = int(v)
     return _FORMATS.get(key, "{}").format(v)
@@ -132,18 +144,26 @@ def write_results(rows: list[dict], folder, title: str = "Results") -> list[Path
     folder = Path(folder)
     md, csv_path = folder / "results.md", folder / "results.csv"
     cols = ("scene", "variant", "split", "psnr", "psnr_cc", "structure_psnr", "l1", "ssim", "lpips", "num_gaussians",
-            "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device", "status")
+            "train_seconds", "step_seconds", "steps", "render_seconds_per_view", "device", "host", "code_revision",
+            "status")
     rows = [dict(r, status=r.get("status") or "finished") for r in rows]
     stopped = _unfinished(rows)
     note = (f"\n{len(stopped)} of {len(rows)} runs have not finished (status): their numbers are not final.\n"
             if stopped else "")
+    if any(r.get("code_revision") is None for r in rows):
+        note += ("\nmachine and code revision: as each run's metrics.json records them; '-' where a run trained "
+                 "before runs recorded them.\n")
     heads = ("scene", "variant", "split", "PSNR (dB)", "colour-corrected PSNR", "structure PSNR", "L1", "SSIM",
-             "LPIPS", "Gaussians", "train s", "median step s", "steps", "render s/view", "device", "status")
+             "LPIPS", "Gaussians", "train s", "median step s", "steps", "render s/view", "device", "machine",
+             "code revision", "status")
     if all(r.get("psnr_cc") is None for r in rows):  # runs evaluated before the metric existed
         cols, heads = zip(*[(c, h) for c, h in zip(cols, heads) if c != "psnr_cc"])
     with atomic_write(md, "w") as fh:
         fh.write(f"# {title}\n\n" + markdown_table(rows, cols, heads) + note)
     with atomic_write(csv_path, "w") as fh:
         fh.write(csv_text(rows, RESULT_COLUMNS))
-    js = write_json(folder / RESULTS_NAME, {"title": title, "machine": machine_info(), "rows": rows})
+    # Each row names the machine and code it trained with; `report` names those that wrote this file.
+    js = write_json(folder / RESULTS_NAME, {"title": title, "report": {"machine": machine_info(),
+                                                                        "code_revision": code_revision()},
+                                            "rows": rows})
     return [md, csv_path, js]

@@ -238,6 +238,8 @@ class TrainingSession:
         self.stop_state = PlateauRule.initial()
         self.best = None  # (state, strategy state) of the best validation check
         self.val_pair_capacity = 0  # the checks' pair buffer (0: start from the step's)
+        self.val_pairs: tuple[int, int] | None = None  # (most pairs a held-out view needed, live count then)
+        self.factor: int | None = None  # the scale the last update trained at
         self.extent = float(dataset.scene_extent)
         if not (math.isfinite(self.extent) and self.extent > 0):
             raise ValueError(f"dataset {config.data}: scene extent {self.extent} is not a positive number")
@@ -290,12 +292,15 @@ class TrainingSession:
         return exposure_mod.init_exposure(len(self.view_names)) if self.config.exposure_compensation else None
 
     def _measure_pairs(self) -> int:
-        """Size the pair buffer from an eager render of the first view (automatic capacity)."""
+        """Size the pair buffer from an eager render of the first view at the first step's scale
+        (automatic capacity): sized at full resolution, a run starting at 1/4 scale kept a buffer
+        16x its need for an epoch and then compiled the step again to shrink it."""
         from ghsplat_jax.core.camera import Camera
         from ghsplat_jax.raster.render import render
         from ghsplat_jax.train.state import render_params
 
-        cam = Camera(self.Ks[0], self.w2cs[0], self.width, self.height)
+        _, Ks, width, height = self.level(0)
+        cam = Camera(Ks[0], self.w2cs[0], width, height)
         s = self.state
         rcfg = dataclasses.replace(self.config.raster, pair_capacity=None)
         out = render(render_params(s.params, s.active, cam.world_to_cam), cam, rcfg)
@@ -423,7 +428,7 @@ class TrainingSession:
         # The checks keep a pair buffer of their own: while training runs at reduced resolution its
         # buffer shrinks to fit, and a shared one would see-saw between the two sizes, compiling the
         # step and the check's render again at every check.
-        capacity = self.val_pair_capacity or self.pair_capacity
+        capacity, most = self.val_pair_capacity or self.pair_capacity, 0
         for v in self.val_views:
             while True:
                 rcfg = dataclasses.replace(lean, pair_capacity=capacity, on_overflow="report")
@@ -431,10 +436,13 @@ class TrainingSession:
                 if int(out.stats.overflow) <= 0:
                     break
                 capacity = regrown_capacity(capacity, int(out.stats.num_pairs))
+            most = max(most, int(out.stats.num_pairs))
             target = jnp.asarray(v.image)
             psnrs.append(float(psnr(out.rgb, target)))
             l1s.append(float(l1(out.rgb, target)))
         self.val_pair_capacity = capacity
+        if state is None:
+            self.val_pairs = (most, s.num_active())
         return {"psnr": float(np.mean(psnrs)), "l1": float(np.mean(l1s)), "num_views": len(psnrs)}
 
     def check(self, step: int) -> dict:
@@ -470,6 +478,7 @@ class TrainingSession:
         """(view, `state` after training step `step` (0-based) on its view, the step's metrics).
         A render that dropped pairs grows the buffer and is redone (one compile per bucket)."""
         v, image, K, width, height = self.view_at(step)
+        self._presize_for_scale(step, state)
         while True:
             rcfg = step_raster_config(self.config, self.pair_capacity, step)
             lr = jnp.float32(self.means_lr_at(step) * self.stop_state["lr_scale"])
@@ -482,6 +491,23 @@ class TrainingSession:
             self.pair_capacity = regrown_capacity(self.pair_capacity, int(m["num_pairs"]))
             log.info("step %d: %d tile-surfel pairs overflowed; pair capacity -> %d", step, int(m["overflow"]),
                      self.pair_capacity)
+
+    def _presize_for_scale(self, step: int, state: TrainState) -> None:
+        """At a switch to a finer training scale, grow an automatic pair buffer to what the last
+        check's full-resolution renders predict for it (pairs scale with the pixels and the live
+        count): the step compiles for the new image size anyway, where growing by overflows
+        compiled it once or twice more (384x288: 10-24 s each)."""
+        f, previous = factor_at(self.schedule, step), self.factor
+        self.factor = f
+        if previous is None or f >= previous or self.val_pairs is None or self.config.raster.pair_capacity:
+            return
+        pairs, count = self.val_pairs
+        tiles = self.config.crop_tiles ** 2 if f == 1 else 1  # windows of a view, each a tiles-th of it
+        need = pair_bucket(pairs * state.num_active() / max(count, 1) / (f * f * tiles))
+        if need > self.pair_capacity:
+            log.info("step %d: training at 1/%d scale from here; pair capacity %d -> %d (the last check's pairs)",
+                     step, f, self.pair_capacity, need)
+            self.pair_capacity = need
 
     def train_copy(self, state: TrainState, start: int, steps: int) -> TrainState:
         """`state` trained on the views and learning rates of steps start..start+steps-1, as the run

@@ -70,8 +70,8 @@ import jax.numpy as jnp
 from ghsplat_jax.train import densify
 from ghsplat_jax.train.compaction import compact_model, free_slots, lowest_mask
 from ghsplat_jax.train.state import TrainState, fit_pool
-from ghsplat_jax.train.strategies.base import accumulated_weights, grow_pool, register
-from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round, starting_pool
+from ghsplat_jax.train.strategies.base import accumulated_weights, grow_pool, register, starting_pool
+from ghsplat_jax.train.strategies.mcmc import MCMCSettings, MCMCStrategy, mcmc_round
 
 log = logging.getLogger("ghsplat.train")
 

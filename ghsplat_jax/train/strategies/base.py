@@ -129,6 +129,12 @@ class StrategyContext:
                                                            # trained on as the run would, hooks left out
 
 
+def starting_pool(initial_count: int) -> int:
+    """The first pool of a strategy whose count grows: the initial surfels and a quarter more, in
+    the pool's buckets (growth_bucket); it grows with the count (grow_pool)."""
+    return growth_bucket(max(math.ceil(1.25 * initial_count), 1024))
+
+
 def grow_pool(state: TrainState, need: int, limit: float = math.inf) -> TrainState:
     """`state` in a pool that holds `need` surfels: at least doubled when it grows (each new pool
     compiles the step and the validation renders again, and a count growing 5-10% a round would

@@ -16,10 +16,12 @@ from ghsplat_jax.train.state import TrainState, fit_pool, grow, growth_bucket
 from ghsplat_jax.train.strategies.base import (
     Strategy,
     StrategySettings,
+    grow_pool,
     is_opacity_reset,
     last_reset_before,
     log,
     register,
+    starting_pool,
 )
 
 
@@ -122,12 +124,14 @@ def capped_pool(max_surfels: int, init, rng) -> tuple[object, int]:
 @register("budget", BudgetSettings)
 @dataclasses.dataclass(frozen=True)
 class BudgetStrategy(DefaultStrategy):
-    """2DGS densification with the count capped by a schedule (densify.budget_target)."""
+    """2DGS densification with the count capped by a schedule (densify.budget_target). The pool
+    grows with the schedule's target, as MCMC's does, rather than holding the cap from step 0."""
 
     caps_count: ClassVar[bool] = True
 
     def initial_pool(self, init, rng):
-        return capped_pool(self.settings.max_surfels, init, rng)
+        init, cap = capped_pool(self.settings.max_surfels, init, rng)
+        return init, min(cap, starting_pool(init.num))
 
     def init_state(self, initial_count: int) -> dict:
         cap = self.settings.max_surfels or 5 * initial_count
@@ -135,9 +139,10 @@ class BudgetStrategy(DefaultStrategy):
                     max_surfels=jnp.int32(cap))
 
     def max_new(self, ctx, state, sstate, it, n_active):
-        target = densify.budget_target(self.config, self.settings.schedule, it, int(sstate["initial_count"]),
-                                       int(sstate["max_surfels"]))
-        return state, max(target - n_active, 0)
+        cap = int(sstate["max_surfels"])
+        target = densify.budget_target(self.config, self.settings.schedule, it, int(sstate["initial_count"]), cap)
+        new = max(target - n_active, 0)
+        return grow_pool(state, n_active + new, limit=cap), new
 
 
 # ----------------------------------------------------------------------------------- mcmc

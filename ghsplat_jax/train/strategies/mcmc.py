@@ -18,8 +18,8 @@ import numpy as np
 from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
 from ghsplat_jax.train import optim
-from ghsplat_jax.train.state import TrainState, growth_bucket
-from ghsplat_jax.train.strategies.base import Strategy, StrategySettings, grow_pool, register
+from ghsplat_jax.train.state import TrainState
+from ghsplat_jax.train.strategies.base import Strategy, StrategySettings, grow_pool, register, starting_pool
 from ghsplat_jax.train.strategies.default import capped_pool
 
 
@@ -123,12 +123,6 @@ def mcmc_noise(state: TrainState, key: jax.Array, scale: jax.Array) -> TrainStat
     noise = jnp.einsum("nij,nj->ni", tuv, local, precision=FLOAT32) * (gate * scale)[:, None]
     means = jnp.where(state.active[:, None], p.means + noise, p.means)
     return dataclasses.replace(state, params=dataclasses.replace(p, means=means))
-
-
-def starting_pool(initial_count: int) -> int:
-    """The first pool of a strategy whose count grows: the initial surfels and a quarter more, in
-    the pool's buckets (growth_bucket); it grows with the count (grow_pool)."""
-    return growth_bucket(max(math.ceil(1.25 * initial_count), 1024))
 
 
 mcmc_round_jit = jax.jit(mcmc_round, static_argnames=("min_opacity", "grow_rate"))
