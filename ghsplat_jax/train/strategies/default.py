@@ -113,12 +113,18 @@ class DefaultStrategy(Strategy):
         return fitted
 
 
-def capped_pool(max_surfels: int, init, rng) -> tuple[object, int]:
-    """(initial surfels subsampled to the cap, the cap): max_surfels, 0 for 5x the initial count."""
-    cap = max_surfels or 5 * init.num
+def count_cap(max_surfels: int, initial_count: int) -> int:
+    """The cap on the live count of a strategy that caps it: max_surfels, 0 for 5x the initial count."""
+    return max_surfels or 5 * initial_count
+
+
+def capped_start(max_surfels: int, init, rng) -> tuple[object, int]:
+    """(initial surfels subsampled to the cap (count_cap), the first pool): the initial count and
+    a quarter (starting_pool), at most the cap; the pool grows with the count (grow_pool)."""
+    cap = count_cap(max_surfels, init.num)
     if init.num > cap:
         init = init.take(np.sort(rng.choice(init.num, cap, replace=False)))
-    return init, cap
+    return init, min(cap, starting_pool(init.num))
 
 
 @register("budget", BudgetSettings)
@@ -130,11 +136,10 @@ class BudgetStrategy(DefaultStrategy):
     caps_count: ClassVar[bool] = True
 
     def initial_pool(self, init, rng):
-        init, cap = capped_pool(self.settings.max_surfels, init, rng)
-        return init, min(cap, starting_pool(init.num))
+        return capped_start(self.settings.max_surfels, init, rng)
 
     def init_state(self, initial_count: int) -> dict:
-        cap = self.settings.max_surfels or 5 * initial_count
+        cap = count_cap(self.settings.max_surfels, initial_count)
         return dict(super().init_state(initial_count), initial_count=jnp.int32(min(initial_count, cap)),
                     max_surfels=jnp.int32(cap))
 

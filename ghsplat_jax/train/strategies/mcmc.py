@@ -19,8 +19,8 @@ from ghsplat_jax.core.precision import FLOAT32
 from ghsplat_jax.core.quaternions import safe_normalize, to_rotation_matrix
 from ghsplat_jax.train import optim
 from ghsplat_jax.train.state import TrainState
-from ghsplat_jax.train.strategies.base import Strategy, StrategySettings, grow_pool, register, starting_pool
-from ghsplat_jax.train.strategies.default import capped_pool
+from ghsplat_jax.train.strategies.base import Strategy, StrategySettings, grow_pool, register
+from ghsplat_jax.train.strategies.default import capped_start, count_cap
 
 
 def relocation_integral(opacity: jax.Array, n: jax.Array, nodes: int = 24) -> jax.Array:
@@ -172,11 +172,10 @@ class MCMCStrategy(Strategy):
     caps_count: ClassVar[bool] = True
 
     def initial_pool(self, init, rng):
-        init, cap = capped_pool(self.settings.max_surfels, init, rng)
-        return init, min(cap, starting_pool(init.num))
+        return capped_start(self.settings.max_surfels, init, rng)
 
     def init_state(self, initial_count: int) -> dict:
-        cap = self.settings.max_surfels or 5 * initial_count
+        cap = count_cap(self.settings.max_surfels, initial_count)
         return dict(super().init_state(initial_count), max_surfels=jnp.int32(cap),
                     relocated=jnp.zeros((), jnp.int32), added=jnp.zeros((), jnp.int32))
 
