@@ -102,6 +102,26 @@ def test_only_prepares_just_the_segments_it_names(tmp_path):
     assert not (tmp_path / "gh" / "row0_x1").exists()
 
 
+def test_report_only_writes_a_missing_segments_report_and_makes_nothing(tmp_path):
+    """A preset trained one segment at a time (`--only`) never wrote segments.md; `--report-only`
+    writes it once every segment exists, and makes no segment that is missing."""
+    sfm = _made_segment(tmp_path, "ok")
+    report = json.loads((sfm / "sfm_report.json").read_text())
+    (sfm / "sfm_report.json").write_text(json.dumps(report | {"machine": {"processor": "AMD EPYC", "cpu_count": 2}}))
+    path = _write(tmp_path)
+    exp = load_experiment(path)
+    assert prepare_segments(exp, make=False) == {}
+    assert "| row0_x0 | ok | 12 | 12 |" in (tmp_path / "runs" / "segments.md").read_text()
+    [row] = json.loads((tmp_path / "runs" / "segments.json").read_text())["segments"]
+    assert row["host"] == "AMD EPYC x2, cpu"  # the machine the SfM ran on, from its own report
+    path.write_text(path.read_text() + '[[scenes]]\nname = "row0_x1"\ndata = "{0}/gh/row0_x1/sfm"\n'
+                    'segment = {{ row = 0, end = "x1" }}\n'.format(tmp_path))
+    (tmp_path / "runs" / "segments.md").unlink()
+    prepare_segments(load_experiment(path), make=False)
+    assert not (tmp_path / "gh" / "row0_x1").exists()  # nothing made
+    assert not (tmp_path / "runs" / "segments.md").exists()  # and no report that leaves a segment out
+
+
 def _write_model(folder, w2cs):
     """A COLMAP text model of cameras with these world_to_cam poses (no points)."""
     from scipy.spatial.transform import Rotation

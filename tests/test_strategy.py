@@ -404,3 +404,37 @@ def test_compactness_report_states_the_goal_check(tmp_path):
     md = (tmp_path / "rep" / "compactness.md").read_text()
     assert "| s | mcmc | 200 (0.20) | 24.90 | -0.10 | yes | 0.020 (0.20)" in md
     assert "1 of 2 runs at 20% meet the goal" in md
+
+
+def test_compactness_cpu_preset_caps_strategies_at_fractions_of_the_self_sized_run():
+    """`compactness.toml --preset auto_cpu`: the auto recipe's run is the reference, and MCMC and the
+    budget schedule train at fractions of its count with the recipe's split, stop rule and schedule."""
+    from ghsplat_jax.experiments.runner import load_experiment
+
+    exp = load_experiment("experiments/compactness.toml", preset="auto_cpu")
+    runs = {r.variant: r for r in exp.runs}
+    assert runs["auto"].config.strategy.name == "auto" and runs["auto"].count_fraction is None
+    capped = [r for r in exp.runs if r.count_fraction is not None]
+    assert {r.config.strategy.name for r in capped} == {"mcmc", "budget"} and {r.count_of for r in capped} == {"auto"}
+    for r in exp.runs:
+        assert r.config.recipe == "auto" and r.config.val_every == 250 and r.config.res_schedule == "spectrum"
+        assert r.config.downscale == 2.0  # the Table 1 protocol's 192x144
+    assert exp.results.as_posix() == "benchmarks/results/compactness/auto_cpu"
+
+
+def test_compactness_report_against_a_self_sized_reference(tmp_path):
+    """Capped runs whose counts are fractions of the auto run are compared with it, and the
+    default's goal check is not claimed for them."""
+    from ghsplat_jax.experiments.compactness import compare, summary_markdown
+
+    rows = [dict(scene="s", variant="auto", strategy="auto", count_fraction=None, count_of=None, num_gaussians=1000,
+                 psnr=28.0),
+            dict(scene="s", variant="mcmc_50", strategy="mcmc", count_fraction=0.5, count_of="auto", num_gaussians=500,
+                 psnr=27.5),
+            dict(scene="s", variant="default", strategy="default", count_fraction=None, count_of=None,
+                 num_gaussians=9000, psnr=27.0)]
+    compared = {r["variant"]: r for r in compare(rows)}
+    assert compared["mcmc_50"]["dpsnr"] == -0.5 and compared["mcmc_50"]["count_ratio"] == 0.5
+    assert compared["default"]["count_ratio"] == 9.0
+    md = summary_markdown(compare(rows), "t")
+    assert "same scene's `auto` run" in md and "No goal check" in md and "meet the goal" not in md

@@ -20,7 +20,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", action="append", default=[], metavar="SCENE[/VARIANT]", help="run only these")
     p.add_argument("--steps", type=int, help="override the step count of every run")
     p.add_argument("--list", action="store_true", help="list the planned runs and their state, train nothing")
-    p.add_argument("--report-only", action="store_true", help="only collect finished runs into the reports")
+    p.add_argument("--report-only", action="store_true",
+                   help="only collect finished runs into the reports (and a missing segments report, once every "
+                        "segment exists)")
     p.add_argument("--prepare-only", action="store_true",
                    help="only make the data of a file with [prepare] (photos and SfM), e.g. to train elsewhere")
     p.add_argument("--stop-on-error", action="store_true", help="stop at the first failed run")
@@ -96,7 +98,8 @@ def main(args) -> int:
         return 2
     try:
         only_scenes = {name.split("/")[0] for name in args.only} or None
-        unusable = {} if args.report_only else prepare_segments(exp, only_scenes)  # scenes whose data could not be made
+        prepared = prepare_segments(exp, only_scenes, make=not args.report_only)  # {scene: why its data is unfit}
+        unusable = {} if args.report_only else prepared  # a report lists every run that trained
     except ConfigError as exc:
         print(f"ghsplat run: {exc}", file=sys.stderr)
         return 2

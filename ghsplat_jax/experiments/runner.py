@@ -412,7 +412,7 @@ def collect(exp: Experiment) -> tuple[list[dict], list[Path]]:
         if row is not None:
             contrib = bool(r.config.strategy.contrib_prune_every or r.config.strategy.contrib_prune_final)
             rows.append(dict(row, strategy=r.config.strategy.name, count_fraction=r.count_fraction,
-                             contrib_prune=contrib))
+                             count_of=r.count_of if r.count_fraction is not None else None, contrib_prune=contrib))
         elif (r.scene, r.variant) in earlier:
             log.warning("%s/%s: no metrics.json in %s; its row is kept from %s", r.scene, r.variant, r.out_dir, report)
             rows.append({"status": FINISHED} | earlier[(r.scene, r.variant)])

@@ -149,6 +149,8 @@ def _make(seg: Segment, world, capture: Capture, sfm_options) -> dict:
 
 
 def _row(seg: Segment, report: dict) -> dict:
+    from ghsplat_jax.experiments.report import host_label
+
     acc = report.get("accuracy") or {}
     return {"segment": seg.scene, "row": seg.row, "end": seg.end, "status": report.get("status"),
             "registered": report.get("num_registered"), "views": report.get("num_images"),
@@ -156,18 +158,21 @@ def _row(seg: Segment, report: dict) -> dict:
             "centre_error_max_pct_extent": _round(100 * acc["centre_error_max_rel"] if acc else None, 3),
             "rotation_error_max_deg": _round(acc.get("rotation_error_max_deg"), 3),
             "sfm_seconds": _round((report.get("timings_s") or {}).get("total"), 1), "data": str(seg.sfm_dir),
-            "pycolmap": (report.get("versions") or {}).get("pycolmap")}  # SfM results differ across installs
+            "pycolmap": (report.get("versions") or {}).get("pycolmap"),  # SfM results differ across installs
+            "host": host_label(report.get("machine"))}  # the machine the SfM ran on, not the report's
 
 
 def _round(value, digits: int):
     return None if value is None else round(float(value), digits)
 
 
-def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
+def prepare_segments(exp, scenes: set[str] | None = None, make: bool = True) -> dict[str, str]:
     """Make every missing segment of the experiment (photos with exact cameras, then SfM), or
     only those of `scenes` (`ghsplat run --only`), write RESULTS/segments.{json,md} and return
     {scene: error} for segments not fit to train. The report is rewritten only when it can list
-    every segment, so a partial preparation never drops the rows of segments it left alone."""
+    every segment, so a partial preparation never drops the rows of segments it left alone.
+    `make=False` (`--report-only`) makes nothing: it writes a missing report once every segment
+    exists, as a preset trained one segment at a time with `--only` never did."""
     prep = exp.spec.get("prepare")
     if not prep:
         return {}
@@ -178,7 +183,7 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
     rows, unusable, made, left = [], {}, False, []
     for seg in _segments(exp.spec, exp.source):
         report = _is_done(seg)
-        if report is None and scenes is not None and seg.scene not in scenes:
+        if report is None and (not make or scenes is not None and seg.scene not in scenes):
             left.append(seg.scene)
             continue
         if report is None:
@@ -200,7 +205,7 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
         if made:
             log.info("not made (outside --only): %s; %s lists every segment once they exist (--prepare-only)",
                      ", ".join(left), exp.results / "segments.md")
-    elif rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the SfM runs' machine record
+    elif rows and (made or not (exp.results / "segments.json").is_file()):  # keeps the report the runs were made with
         _write_report(rows, exp.results, capture)
     return unusable
 
@@ -208,12 +213,12 @@ def prepare_segments(exp, scenes: set[str] | None = None) -> dict[str, str]:
 def _write_report(rows: list[dict], folder: Path, capture: Capture) -> None:
     from ghsplat_jax.experiments.report import markdown_table
 
-    write_json(folder / "segments.json", {"capture": dataclasses.asdict(capture), "machine": machine_info(),
-                                          "segments": rows})
+    write_json(folder / "segments.json", {"capture": dataclasses.asdict(capture), "report": {"machine": machine_info()},
+                                          "segments": rows})  # each row's host: the machine its SfM ran on
     cols = ("segment", "status", "registered", "views", "reprojection_px", "centre_error_max_pct_extent",
-            "rotation_error_max_deg", "sfm_seconds")
+            "rotation_error_max_deg", "sfm_seconds", "host")
     heads = ("segment", "SfM status", "registered", "photos", "reproj. px", "max centre error % extent",
-             "max rotation error deg", "SfM s")
+             "max rotation error deg", "SfM s", "SfM machine")
     with atomic_write(folder / "segments.md", "w") as fh:
         fh.write(f"# Row segments: {capture.views} photos of {capture.width}x{capture.height} per segment, SfM "
                  "scored against the generator's exact cameras (similarity-aligned)\n\n"
