@@ -94,6 +94,19 @@ def write_json(path: str | os.PathLike, obj) -> Path:
     return Path(path)
 
 
+def read_jsonl(path: str | os.PathLike) -> list[dict]:
+    """The records of a JSON-lines log (stats.jsonl, test_curve.jsonl); [] when it does not exist.
+    A line cut short (a run stopped mid-write) is skipped."""
+    path = Path(path)
+    records = []
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue
+    return records
+
+
 def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     """Write a matplotlib Figure as PNG atomically (a `matplotlib.figure.Figure` needs no
     pyplot and no backend switch: it renders with Agg for PNG)."""

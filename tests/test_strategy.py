@@ -423,18 +423,27 @@ def test_compactness_cpu_preset_caps_strategies_at_fractions_of_the_self_sized_r
 
 
 def test_compactness_report_against_a_self_sized_reference(tmp_path):
-    """Capped runs whose counts are fractions of the auto run are compared with it, and the
-    default's goal check is not claimed for them."""
+    """Capped runs whose counts are fractions of the auto run are compared with it, also at its
+    training time (from their test curves), and the default's goal check is not claimed for them."""
     from ghsplat_jax.experiments.compactness import compare, summary_markdown
 
-    rows = [dict(scene="s", variant="auto", strategy="auto", count_fraction=None, count_of=None, num_gaussians=1000,
-                 psnr=28.0),
-            dict(scene="s", variant="mcmc_50", strategy="mcmc", count_fraction=0.5, count_of="auto", num_gaussians=500,
-                 psnr=27.5),
-            dict(scene="s", variant="default", strategy="default", count_fraction=None, count_of=None,
-                 num_gaussians=9000, psnr=27.0)]
+    rows = []
+    for variant, strategy, frac, n, psnr, seconds, curve in (
+            ("auto", "auto", None, 1000, 28.0, 600.0, [(300.0, 26.0), (590.0, 27.9)]),
+            ("mcmc_50", "mcmc", 0.5, 500, 27.5, 900.0, [(300.0, 25.0), (600.0, 26.5), (610.0, 26.8), (900.0, 27.5)]),
+            ("default", "default", None, 9000, 27.0, 7000.0, [])):
+        run = tmp_path / variant
+        run.mkdir()
+        lines = "".join(json.dumps({"elapsed_s": t, "psnr": p}) + "\n" for t, p in curve)
+        (run / "test_curve.jsonl").write_text(lines + '{"elapsed_s": 95')  # a line cut short by a stop
+        rows.append(dict(scene="s", variant=variant, strategy=strategy, count_fraction=frac,
+                         count_of="auto" if frac else None, num_gaussians=n, psnr=psnr, train_seconds=seconds,
+                         run_dir=str(run)))
     compared = {r["variant"]: r for r in compare(rows)}
     assert compared["mcmc_50"]["dpsnr"] == -0.5 and compared["mcmc_50"]["count_ratio"] == 0.5
-    assert compared["default"]["count_ratio"] == 9.0
-    md = summary_markdown(compare(rows), "t")
+    assert compared["mcmc_50"]["psnr_at_reference_time"] == 26.5  # its point at 600 s, not the one after
+    assert compared["auto"]["psnr_at_reference_time"] == 27.9
+    assert compared["default"]["count_ratio"] == 9.0 and compared["default"]["psnr_at_reference_time"] is None
+    md = summary_markdown(list(compared.values()), "t")
     assert "same scene's `auto` run" in md and "No goal check" in md and "meet the goal" not in md
+    assert "| s | mcmc_50 | mcmc | 50% | 500 | 27.50 | -0.50 | 900 | 26.50 |" in md

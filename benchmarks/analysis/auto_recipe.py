@@ -64,17 +64,6 @@ def carried_runs(previous: Path, present: list[dict], key: str = "runs") -> list
     return [r for r in json.loads(previous.read_text()).get(key, []) if (r["scene"], r["variant"]) not in have]
 
 
-def read_jsonl(path: Path) -> list[dict]:
-    rows = []
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                rows.append(json.loads(line))
-            except ValueError:
-                continue  # a line cut short
-    return rows
-
-
 # run folder -> reference variant; mcmc_full: the count-against-regularisation control (MCMC at the
 # default's count), trained with a test curve under its own name
 CURVE_VARIANTS = {"default_curve": "default", "compact_curve": "compact", "mcmc_full": "mcmc_full"}
@@ -84,6 +73,8 @@ REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray"), "mcmc_fu
 
 def curve_points(path: Path) -> list[dict]:
     """A test_curve.jsonl's points as the results keep them."""
+    from ghsplat_jax.io_utils import read_jsonl  # here: --check runs without JAX
+
     keys = ("elapsed_s", "psnr", "num_surfels", "step", "code_revision", "load_average")
     return [{k: p.get(k) for k in keys} for p in read_jsonl(path)]
 
@@ -112,14 +103,13 @@ def unfinished_runs(runs_root: Path) -> list[dict]:
     out = []
     for curve_path in sorted(runs_root.glob("*/auto*/test_curve.jsonl")):
         run = curve_path.parent
-        curve = read_jsonl(curve_path)
+        curve = curve_points(curve_path)
         if (run / "metrics.json").is_file() or not curve:
             continue
         last = curve[-1]
         out.append({"scene": run.parent.name, "variant": run.name, "last_scored_step": last["step"],
                     "psnr_then": last["psnr"], "num_surfels_then": last.get("num_surfels"),
-                    "train_seconds_then": last["elapsed_s"],
-                    "curve": curve_points(curve_path)})
+                    "train_seconds_then": last["elapsed_s"], "curve": curve})
     return out
 
 

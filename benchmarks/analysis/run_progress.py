@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import RESULTS, machine_record  # noqa: E402
 
-from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.io_utils import read_jsonl, save_figure, write_json
 from ghsplat_jax.train.run_dir import STATS_NAME, TEST_CURVE_NAME
 
 WINDOWS = [(0, 500), (500, 1000), (1000, 1500), (1500, 3000), (3000, 7000), (7000, 7100), (15000, 15100),
@@ -86,16 +86,6 @@ def chart(summary: dict, title: str, path: Path) -> None:
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)
-
-
-def read_jsonl(path: Path) -> list[dict]:
-    records = []
-    for line in path.read_text().splitlines() if path.is_file() else []:
-        try:
-            records.append(json.loads(line))
-        except ValueError:
-            continue  # a line cut short by a stop
-    return records
 
 
 def main(argv=None) -> int:

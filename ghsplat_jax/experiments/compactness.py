@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ghsplat_jax.io_utils import atomic_write, machine_info, save_figure, write_json
-from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, median_step_seconds, read_metrics
+from ghsplat_jax.io_utils import atomic_write, machine_info, read_jsonl, save_figure, write_json
+from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, TEST_CURVE_NAME, median_step_seconds, read_metrics
 
 GOAL_FRACTION = 0.2
 GOAL_DB = 0.2
@@ -49,6 +49,14 @@ def series_name(row: dict) -> str:
     return f"{name} + contrib prune" if row.get("contrib_prune") else name
 
 
+def psnr_by(run_dir, seconds: float) -> float | None:
+    """The test PSNR a run had reached after `seconds` of training: its test curve's last point
+    at or before then (None without a curve, or before its first point)."""
+    reached = [p["psnr"] for p in read_jsonl(Path(run_dir) / TEST_CURVE_NAME)
+               if p.get("elapsed_s") is not None and p["elapsed_s"] <= seconds]
+    return reached[-1] if reached else None
+
+
 def _ratio(a, b):
     return None if a is None or b in (None, 0) else a / b
 
@@ -75,6 +83,8 @@ def compare(rows: list[dict]) -> list[dict]:
             d["step_ratio"] = _ratio(r.get("step_seconds"), ref.get("step_seconds"))
             d["state_ratio"] = _ratio(r.get("state_mib"), ref.get("state_mib"))
             d["render_ratio"] = _ratio(r.get("render_seconds_per_view"), ref.get("render_seconds_per_view"))
+            if ref.get("train_seconds") and r.get("run_dir"):  # equal time: what each had after the reference's
+                d["psnr_at_reference_time"] = psnr_by(r["run_dir"], ref["train_seconds"])
         out.append(d)
     return out
 
@@ -99,16 +109,21 @@ def summary_markdown(rows: list[dict], title: str) -> str:
                      "default's.\n")
     else:
         lines += _goal_check(rows)
+    timed = any(r.get("psnr_at_reference_time") is not None for r in rows)  # runs that wrote a test curve
     lines.append("## All runs\n")
-    lines.append("| scene | variant | strategy | fraction | surfels | PSNR | dPSNR | train s | step s | render s | "
-                 "state MiB | capacity |")
-    lines.append("|" + " --- |" * 12)
+    if timed:
+        lines.append(f"`PSNR at its time`: the test PSNR each run had reached after `{reference}`'s training time "
+                     "(its test curve's last point by then), an equal-time comparison.\n")
+    lines.append("| scene | variant | strategy | fraction | surfels | PSNR | dPSNR | train s | "
+                 + ("PSNR at its time | " if timed else "") + "step s | render s | state MiB | capacity |")
+    lines.append("|" + " --- |" * (13 if timed else 12))
     for r in rows:
+        at_time = f"{_f(r.get('psnr_at_reference_time'), '{:.2f}')} | " if timed else ""
         lines.append(f"| {r['scene']} | {r['variant']} | {series_name(r)} | "
                      f"{_f(r.get('count_fraction'), '{:.0%}')} | "
                      f"{_f(r['num_gaussians'], '{:,}')} | {_f(r['psnr'], '{:.2f}')} | "
                      f"{_f(r.get('dpsnr'), '{:+.2f}')} | "
-                     f"{_f(r.get('train_seconds'), '{:.0f}')} | {_f(r.get('step_seconds'), '{:.3f}')} | "
+                     f"{_f(r.get('train_seconds'), '{:.0f}')} | {at_time}{_f(r.get('step_seconds'), '{:.3f}')} | "
                      f"{_f(r.get('render_seconds_per_view'), '{:.3f}')} | {_f(r.get('state_mib'), '{:.1f}')} | "
                      f"{_f(r.get('capacity'), '{:,}')} |")
     return "\n".join(lines) + "\n"
@@ -178,10 +193,11 @@ def write_compactness(rows: list[dict], folder, title: str = "") -> list[Path]:
     with atomic_write(md, "w") as fh:
         fh.write(summary_markdown(rows, title))
     made.append(md)
-    made.append(write_json(folder / "compactness.json", {"title": title, "machine": machine_info(), "rows": rows}))
+    made.append(write_json(folder / "compactness.json", {"title": title, "report": {"machine": machine_info()},
+                                                         "rows": rows}))  # each row: its run's machine
     cols = ("scene", "variant", "strategy", "count_fraction", "num_gaussians", "psnr", "dpsnr", "count_ratio",
-            "train_seconds", "step_seconds", "step_ratio", "render_seconds_per_view", "render_ratio", "state_mib",
-            "state_ratio", "capacity", "peak_rss_mb", "steps")
+            "train_seconds", "psnr_at_reference_time", "step_seconds", "step_ratio", "render_seconds_per_view",
+            "render_ratio", "state_mib", "state_ratio", "capacity", "peak_rss_mb", "steps", "host", "code_revision")
     with atomic_write(folder / "compactness.csv", "w") as fh:
         fh.write(csv_text(rows, cols))
     made.append(folder / "compactness.csv")
