@@ -57,6 +57,16 @@ def psnr_by(run_dir, seconds: float) -> float | None:
     return reached[-1] if reached else None
 
 
+def psnr_at_time(row: dict, seconds: float | None) -> float | None:
+    """Equal time: the test PSNR a run offered after `seconds` of training, its result where it
+    had finished by then (a stopped run's best check, not its last step), else its test curve."""
+    if not seconds:
+        return None
+    if row.get("train_seconds") is not None and row["train_seconds"] <= seconds:
+        return row["psnr"]
+    return psnr_by(row["run_dir"], seconds) if row.get("run_dir") else None
+
+
 def _ratio(a, b):
     return None if a is None or b in (None, 0) else a / b
 
@@ -83,8 +93,7 @@ def compare(rows: list[dict]) -> list[dict]:
             d["step_ratio"] = _ratio(r.get("step_seconds"), ref.get("step_seconds"))
             d["state_ratio"] = _ratio(r.get("state_mib"), ref.get("state_mib"))
             d["render_ratio"] = _ratio(r.get("render_seconds_per_view"), ref.get("render_seconds_per_view"))
-            if ref.get("train_seconds") and r.get("run_dir"):  # equal time: what each had after the reference's
-                d["psnr_at_reference_time"] = psnr_by(r["run_dir"], ref["train_seconds"])
+            d["psnr_at_reference_time"] = psnr_at_time(r, ref.get("train_seconds"))
         out.append(d)
     return out
 
@@ -112,8 +121,9 @@ def summary_markdown(rows: list[dict], title: str) -> str:
     timed = any(r.get("psnr_at_reference_time") is not None for r in rows)  # runs that wrote a test curve
     lines.append("## All runs\n")
     if timed:
-        lines.append(f"`PSNR at its time`: the test PSNR each run had reached after `{reference}`'s training time "
-                     "(its test curve's last point by then), an equal-time comparison.\n")
+        lines.append(f"`PSNR at its time`: the test PSNR each run offered after `{reference}`'s training time, an "
+                     "equal-time comparison: its result where it had finished by then, else its test curve's last "
+                     "point by then.\n")
     lines.append("| scene | variant | strategy | fraction | surfels | PSNR | dPSNR | train s | "
                  + ("PSNR at its time | " if timed else "") + "step s | render s | state MiB | capacity |")
     lines.append("|" + " --- |" * (13 if timed else 12))
