@@ -25,11 +25,13 @@ SETTINGS = {  # quick: about two minutes; full: under ten on a 2-core CPU
     # SIFT needs some resolution: photos at 384x288, training at half that. The 2DGS schedule cut
     # at 3000 steps, densifying from step 300 instead of 500, with the budget strategy capped at
     # 30k surfels: 28 views do not need the default's 100k, which overfit and slow every step.
-    # Measured alone on 2 cores (code a185457): 24.60 dB test PSNR, training 184 s, the whole demo
-    # 261 s. The auto recipe on the same row: 23.32 dB at step 2,500 (251 s, 35,825 surfels, still
-    # growing), so it is not the demo's. Tried on this row and worse: the means' rate decayed over
-    # 3,000 steps (23.60 dB), a 15k cap (24.20), SH degree 1 (24.49). In every try two of the four
-    # test views (00000, the capture's first, and 00024) score 21.1-23.9 dB, the others 24.5-27.4.
+    # Measured alone on 2 cores from a fresh clone (code 9bcae31, the pool grown with the schedule):
+    # 24.44 dB test PSNR, training 195 s, the whole demo 267 s (a185457, the pool at the cap from
+    # step 0: 24.60 dB, 184 s, 261 s). The auto recipe on the same row: 23.32 dB at step 2,500
+    # (251 s, 35,825 surfels, still growing), so it is not the demo's. Tried on this row and worse:
+    # the means' rate decayed over 3,000 steps (23.60 dB), a 15k cap (24.20), SH degree 1 (24.49).
+    # In every try two of the four test views (00000, the capture's first, and 00024) score
+    # 20.2-23.9 dB, the others 24.5-28.0.
     "full": dict(plants=4, views=32, size=(384, 288), downscale=2, points=6000, steps=3000, sfm=True,
                  sim_frames=10, loc_frames=20,
                  train={"densify_from": 300, "strategy.name": "budget", "strategy.max_surfels": 30000,
