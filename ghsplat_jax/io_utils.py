@@ -140,6 +140,14 @@ def machine_info(start_backend: bool = True) -> dict:
     return dict(info, load_average=list(os.getloadavg()))
 
 
+def host_label(machine: dict | None) -> str | None:
+    """A machine record in a few words (processor, cores, device): one kind of machine, whose
+    times a table may set side by side; None for no record."""
+    if not machine:
+        return None
+    return f"{machine.get('processor') or 'unknown CPU'} x{machine.get('cpu_count')}, {machine.get('device') or 'cpu'}"
+
+
 _REFERENCE_SECONDS: list[float] = []
 
 

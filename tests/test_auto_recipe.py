@@ -479,14 +479,14 @@ def test_a_tiny_run_judged_at_plateaus_anneals_only_once_its_count_is_final(tmp_
     assert all(lr[t + 1] <= lr[t] for t in lr if t + 1 in lr and t not in grew)  # else it only decays
 
 
-def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings=""):
+def _fake_run(root, scene, variant, psnr, count, seconds, curve, seed=0, revision="abc", settings="", machine=None):
     run = root / scene / variant
     run.mkdir(parents=True)
     (run / "config.toml").write_text(f"seed = {seed}\ntest_curve_every = 500\n{settings}")
     (run / "metrics.json").write_text(json.dumps({
         "test": {"psnr": psnr, "l1": 0.02, "ssim": 0.9}, "train": {"psnr": psnr + 2}, "num_gaussians": count,
         "train_seconds": seconds, "steps": 5000, "stop": {"best_step": 4750, "reason": "plateau"},
-        "code_revision": revision}))
+        "code_revision": revision, "machine": machine}))
     (run / "test_curve.jsonl").write_text("".join(json.dumps({"step": 500 * (i + 1), "elapsed_s": t, "psnr": p})
                                                   + "\n" for i, (t, p) in enumerate(curve)))
 
@@ -556,6 +556,34 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
     assert [r["variant"] for r in again["runs"]] == ["auto", "auto_nores", "auto_normal2k", "auto_old_nores",
                                                      "auto_seed1"]
     assert "| seg | auto_nores | auto | res_schedule | 27.50 | -0.50 |" in (out / "README.md").read_text()
+
+
+def test_auto_recipe_report_times_only_runs_of_one_kind_of_machine(tmp_path):
+    """Seeds trained on two kinds of machine: the PSNR counts every seed, the times only those of
+    the report's main kind (one scene's seeds all elsewhere: its own kind), and the rows say so."""
+    from benchmark_scripts import load_benchmark
+
+    report = load_benchmark("auto_recipe")
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    amd = {"processor": "AMD EPYC", "cpu_count": 2, "device": "cpu"}
+    intel = {"processor": "Intel Xeon", "cpu_count": 2, "device": "cpu"}
+    _fake_run(runs, "a", "auto", 28.0, 30000, 600.0, [(300, 27.0), (600, 28.0)], machine=amd)
+    _fake_run(runs, "a", "auto_seed1", 28.4, 30000, 1300.0, [(650, 27.2), (1300, 28.4)], seed=1, machine=intel)
+    _fake_run(runs, "b", "auto", 27.0, 30000, 500.0, [(500, 27.0)], machine=amd)
+    _fake_run(runs, "c", "auto", 26.0, 30000, 1000.0, [(1000, 26.0)], machine=intel)
+    ref = tmp_path / "ref.json"
+    ref.write_text(json.dumps({"rows": []}))
+    assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
+    a, b, c = json.loads((out / "results.json").read_text())["summary"]
+    assert a["psnr"]["mean"] == pytest.approx(28.2) and a["train_seconds"]["n"] == 1
+    assert a["train_seconds"]["mean"] == 600.0 and a["psnr_at_10_min"]["mean"] == 28.0
+    assert a["timed_on"] == {"machine": "AMD EPYC x2, cpu", "runs": 1} and b["timed_on"]["runs"] == 1
+    assert c["timed_on"] == {"machine": "Intel Xeon x2, cpu", "runs": 1}
+    text = (out / "README.md").read_text()
+    assert "| a | 2 | 28.20 ± 0.28 | 30,000 ± 0 | 600 ± 0 (1 of 2 runs: AMD EPYC x2, cpu) |" in text
+    assert "| b | 1 | 27.00 ± 0.00 | 30,000 ± 0 | 500 ± 0 |" in text
+    assert "| 1300 | 5000 | 4750 | Intel Xeon x2, cpu |" in text  # every run names its machine
+    assert (out / "psnr_vs_time_a.png").is_file() and report.check(out) == ""
 
 
 def test_auto_recipe_report_reads_reference_curves_at_equal_time(tmp_path):

@@ -13,10 +13,10 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "ghsplat_jax"
 
 # Lower numbers are lower layers; a module may import its own layer's (without a cycle) or
-# lower ones. The top-level helpers (io_utils, paths, config_values, host_memory) sit below everything. The package root
-# (ghsplat_jax/__init__.py) is the public facade: only commands may import it.
+# lower ones. The top-level helpers (io_utils, curves, paths, config_values, host_memory) sit below
+# everything. The package root (ghsplat_jax/__init__.py) is the public facade: only commands may import it.
 LAYERS = {
-    "io_utils": 0, "paths": 0, "config_values": 0, "host_memory": 0,
+    "io_utils": 0, "curves": 0, "paths": 0, "config_values": 0, "host_memory": 0,
     "core": 1,
     "raster": 2,
     "data": 3,

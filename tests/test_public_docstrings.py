@@ -4,6 +4,8 @@ each of its parameters."""
 
 import inspect
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -40,3 +42,13 @@ def test_the_section_reader_finds_sections():
     assert section(doc, "Args").strip() == "x: a value."
     assert section(doc, "Returns").strip() == "y."
     assert section("Summary only.", "Args") is None
+
+
+def test_the_facade_loads_jax_only_when_used():
+    # Report scripts import the package's JAX-free modules (io_utils, curves) for their README checks.
+    code = ("import sys, ghsplat_jax.io_utils, ghsplat_jax.curves; assert 'jax' not in sys.modules, 'jax loaded'; "
+            "import ghsplat_jax as gs; assert 'render' in dir(gs); gs.render; assert 'jax' in sys.modules; "
+            "from ghsplat_jax import load_ply\n"
+            "try:\n    gs.no_such_name\nexcept AttributeError as e:\n    print(e)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "has no attribute 'no_such_name'" in out.stdout

@@ -172,3 +172,17 @@ def test_compact_seeds_are_judged_against_the_default_by_their_spread(table1):
     assert "| s2 | 2 | 28.20 ± 0.42 | 28.00 | +0.20 ± 0.42 | -0.10 | no |" in text
     assert "| s3 |" not in text and "| s4 |" not in text and "| aaaaaaa, 1 not recorded |" in text  # s5's
     assert table1.compact_seeds_section(rows[7:11]) == []
+
+
+def test_table1_seed_table_times_one_kind_of_machine(table1):
+    """A segment whose seeds trained on two kinds of machine: its PSNR over every seed, its
+    training seconds over the table's main kind only, with the kind named."""
+    amd = {"processor": "AMD EPYC", "cpu_count": 2, "device": "cpu"}
+    intel = {"processor": "Intel Xeon", "cpu_count": 2, "device": "cpu"}
+    row = dict(variant="auto", ssim=0.9, lpips=0.2, depth_abs_err=0.04, normal_err_deg=30.0, num_gaussians=20000)
+    rows = [dict(row, scene="a", psnr=28.0, train_seconds=600.0, machine=amd),
+            dict(row, scene="a", variant="auto_seed1", psnr=28.4, train_seconds=1300.0, machine=intel),
+            dict(row, scene="b", psnr=27.0, train_seconds=500.0, machine=amd)]
+    text = "\n".join(table1.seed_table(rows, "segment"))
+    assert "| a | 2 | 28.20 ± 0.28 |" in text and "| 600 (1 of 2 runs: AMD EPYC x2, cpu) |" in text
+    assert "| b | 1 | 27.00 |" in text and text.rstrip().endswith("| 500 |")

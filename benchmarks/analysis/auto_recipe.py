@@ -40,6 +40,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 from readme_check import report, text_diff  # noqa: E402
 
+from ghsplat_jax.curves import psnr_at, time_to  # JAX-free modules: --check runs without JAX
+from ghsplat_jax.io_utils import atomic_write, code_revision, host_label, read_jsonl, write_json
+
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -73,8 +76,6 @@ REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray"), "mcmc_fu
 
 def curve_points(path: Path) -> list[dict]:
     """A test_curve.jsonl's points as the results keep them."""
-    from ghsplat_jax.io_utils import read_jsonl  # here: --check runs without JAX
-
     keys = ("elapsed_s", "psnr", "num_surfels", "step", "code_revision", "load_average")
     return [{k: p.get(k) for k in keys} for p in read_jsonl(path)]
 
@@ -153,16 +154,6 @@ def spread(values: list[float]) -> dict:
             "min": min(vals), "max": max(vals), "n": len(vals)}
 
 
-def time_to(curve: list[dict], level: float) -> float | None:
-    """Training seconds until the test PSNR first reached `level` (None: never on the curve)."""
-    return next((p["elapsed_s"] for p in curve if p["psnr"] >= level), None)
-
-
-def psnr_at(curve: list[dict], seconds: float) -> float | None:
-    """The last scored test PSNR at or before `seconds` of training (None: nothing scored by then)."""
-    return next((p["psnr"] for p in reversed(curve) if p["elapsed_s"] <= seconds), None)
-
-
 def psnr_then(curve: list[dict], seconds: float, finished: bool) -> float | None:
     """The test PSNR of a run after `seconds` of training: its last point by then; None when
     nothing was scored by then, or when an unfinished curve ends before `seconds` (not reached)."""
@@ -171,12 +162,13 @@ def psnr_then(curve: list[dict], seconds: float, finished: bool) -> float | None
     return psnr_at(curve, seconds)
 
 
-def equal_time(scene: str, runs: list[dict], curves: list[dict]) -> dict:
-    """Test PSNR after each of EQUAL_TIMES_S of training: the auto seeds' mean, and each reference curve's."""
+def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str | None = None) -> dict:
+    """Test PSNR after each of EQUAL_TIMES_S of training: the auto seeds' mean, and each reference
+    curve's trained on `kind` of machine (or with no record of one; None: any)."""
     seeds = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
     row = {"auto": {f"{t:g}": spread([psnr_then(r["curve"], t, True) for r in seeds]) for t in EQUAL_TIMES_S}}
     for c in curves:
-        if c["scene"] == scene:
+        if c["scene"] == scene and (kind is None or machine_kind(c) in (kind, "unrecorded")):
             row[c["variant"]] = {f"{t:g}": psnr_then(c["curve"], t, c["finished"]) for t in EQUAL_TIMES_S}
     return row
 
@@ -248,15 +240,33 @@ def seeded_ablations(runs: list[dict]) -> list[dict]:
     return out
 
 
+def machine_kind(run: dict) -> str:
+    """The kind of machine a run trained on (processor, cores, device), as its record names it."""
+    return host_label(run.get("machine")) or "unrecorded"
+
+
+def timed_runs(runs: list[dict], prefer: str | None = None) -> tuple[str, list[dict]]:
+    """The runs whose times may be set side by side, and their kind of machine: those on `prefer`
+    where any ran there (a report's main kind, so its rows compare too), else those on the kind
+    most of `runs` trained on (a tie: the first run's). Times from two kinds of machine differ by
+    their speed, not by what trained (2x between two 2-core hosts of this project)."""
+    kinds = [machine_kind(r) for r in runs]
+    kind = prefer if prefer in kinds else max(dict.fromkeys(kinds), key=kinds.count) if kinds else "unrecorded"
+    return kind, [r for r, k in zip(runs, kinds) if k == kind]
+
+
 def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dict]:
     scenes = sorted({r["scene"] for r in runs if is_seed(r["variant"])})
+    main_kind = timed_runs([r for r in runs if is_seed(r["variant"])])[0]
     out = []
     for scene in scenes:
         rs = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
+        kind, timed = timed_runs(rs, main_kind)  # every time below: these runs only
         compact, default = refs.get((scene, "compact")), refs.get((scene, "default"))
         s = {"scene": scene, "seeds": len(rs), "psnr": spread([r["psnr"] for r in rs]),
              "num_gaussians": spread([r["num_gaussians"] for r in rs]),
-             "train_seconds": spread([r["train_seconds"] for r in rs]),
+             "timed_on": {"machine": kind, "runs": len(timed)},
+             "train_seconds": spread([r["train_seconds"] for r in timed]),
              "compact": None if compact is None else {k: compact.get(k) for k in
                                                       ("psnr", "num_gaussians", "train_seconds", "device")},
              "default": None if default is None else {k: default.get(k) for k in
@@ -264,18 +274,18 @@ def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dic
         if compact:
             s["goal"] = {"psnr_at_least_compact": s["psnr"]["mean"] >= compact["psnr"],
                          "count_at_most_compact": s["num_gaussians"]["mean"] <= compact["num_gaussians"],
-                         "every_run_within_10_min": all((r["train_seconds"] or 1e9) <= TIME_GOAL_S for r in rs)}
-            s["time_to_compact_psnr_s"] = [time_to(r["curve"], compact["psnr"]) for r in rs]
+                         "every_run_within_10_min": all((r["train_seconds"] or 1e9) <= TIME_GOAL_S for r in timed)}
+            s["time_to_compact_psnr_s"] = [time_to(r["curve"], compact["psnr"]) for r in timed]
         if scene in SCENE_GOALS:
             level, seconds = SCENE_GOALS[scene]
             s["goal"] = {f"psnr_at_least_{level:g}": s["psnr"]["mean"] >= level,
                          f"every_run_within_{seconds / 60:g}_min": all((r["train_seconds"] or 1e9) <= seconds
-                                                                      for r in rs)}
+                                                                      for r in timed)}
         if default:
-            s["time_to_default_psnr_s"] = [time_to(r["curve"], default["psnr"]) for r in rs]
-        s["psnr_at_10_min"] = spread([psnr_at(r["curve"], TIME_GOAL_S) for r in rs])
-        s["equal_time"] = equal_time(scene, runs, list(curves))
-        s["time_to_level_s"] = {f"{level:g}": spread([time_to(r["curve"], level) for r in rs])
+            s["time_to_default_psnr_s"] = [time_to(r["curve"], default["psnr"]) for r in timed]
+        s["psnr_at_10_min"] = spread([psnr_at(r["curve"], TIME_GOAL_S) for r in timed])
+        s["equal_time"] = equal_time(scene, timed, list(curves), kind)
+        s["time_to_level_s"] = {f"{level:g}": spread([time_to(r["curve"], level) for r in timed])
                                 for level in PSNR_LEVELS}
         out.append(s)
     return out
@@ -297,13 +307,23 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     markers = "ov^<>pP*hX"
+    # a time axis draws one kind of machine: the report's main kind where the scene has runs on it
+    kind, timed = timed_runs([r for r in runs if r["scene"] == scene], timed_runs(runs)[0])
     for i, r in enumerate(r for r in runs if r["scene"] == scene):
         c = r["curve"]
+        if r not in timed:
+            ax.axhline(r["psnr"], ls=":", color=f"C{i}",
+                       label=f"{run_label(r)}, final, on {machine_kind(r)}: time not comparable")
+            continue
         ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-", marker=markers[i % len(markers)],
                 ms=3, color=f"C{i}", label=run_label(r))
     for c in (c for c in curves if c["scene"] == scene):
         marker, color = REFERENCE_STYLE[c["variant"]]
         pts = c["curve"]
+        if machine_kind(c) not in (kind, "unrecorded"):
+            ax.axhline(pts[-1]["psnr"], ls=":", color=color,
+                       label=f"{c['variant']}, last scored, on {machine_kind(c)}: time not comparable")
+            continue
         reached = "to the end" if c["finished"] else f"to step {c['last_step']:,} (stopped)"
         ax.plot([p["elapsed_s"] / 60 for p in pts], [p["psnr"] for p in pts], "--", marker=marker, ms=3, color=color,
                 label=f"{c['variant']}, test curve {reached} ({c['num_surfels_then'] or 0:,} surfels then)")
@@ -322,13 +342,19 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
     ax.set_xscale("log")
     ax.set_xlabel("training time (min, log scale; test scoring left out)")
     ax.set_ylabel("test PSNR (dB), held-out views")
-    ax.set_title(f"{scene}: test PSNR against training time")
+    ax.set_title(f"{scene}: test PSNR against training time on {kind}", fontsize=10)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def timed_note(s: dict) -> str:
+    """A scene summary's note where its times leave out seeds trained on another kind of machine."""
+    timed = s["timed_on"]
+    return "" if timed["runs"] == s["seeds"] else f" ({timed['runs']} of {s['seeds']} runs: {timed['machine']})"
 
 
 def fmt(x, spec=".2f", none="-"):
@@ -391,6 +417,9 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
              f"({record['machine']['cpu_count']} cores). Each run records its own machine and code revision in "
              "results.json.", "",
              "## Per scene (auto: mean ± sample std over seeds)", "",
+             "Every time (train s, the time to reach a PSNR, the PSNR at 10 min, the goals on time) counts only "
+             "seeds trained on one kind of machine: the kind most of the report's seeds trained on, where a scene "
+             "has seeds there. A row that leaves seeds out of its times names the kind and how many it holds.", "",
              "| scene | seeds | auto test PSNR (dB) | auto surfels | auto train s | compact PSNR | compact surfels | "
              "default PSNR | default surfels | goal: PSNR >= compact | count <= compact | each run <= 10 min |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -400,7 +429,8 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
         yes = lambda k: "-" if k not in g else ("yes" if g[k] else "**no**")  # noqa: E731
         lines.append(f"| {s['scene']} | {s['seeds']} | {fmt(p['mean'])} ± {fmt(p['std'])} | "
                      f"{fmt(n['mean'], ',.0f')} ± {fmt(n['std'], ',.0f')} | {fmt(t['mean'], '.0f')} ± "
-                     f"{fmt(t['std'], '.0f')} | {fmt(c.get('psnr'))} | {fmt(c.get('num_gaussians'), ',')} | "
+                     f"{fmt(t['std'], '.0f')}{timed_note(s)} | {fmt(c.get('psnr'))} | "
+                     f"{fmt(c.get('num_gaussians'), ',')} | "
                      f"{fmt(d.get('psnr'))} | {fmt(d.get('num_gaussians'), ',')} | {yes('psnr_at_least_compact')} | "
                      f"{yes('count_at_most_compact')} | {yes('every_run_within_10_min')} |")
     own = [s for s in summary if s["scene"] in SCENE_GOALS]
@@ -415,8 +445,9 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
         cells = []
         for level in PSNR_LEVELS:
             t = s["time_to_level_s"][f"{level:g}"]
-            cells.append("never" if not t["n"] else f"{t['mean'] / 60:.1f} ({t['n']} of {s['seeds']})")
-        lines.append(f"| {s['scene']} | {fmt(s['psnr_at_10_min']['mean'])} | " + " | ".join(cells) + " |")
+            cells.append("never" if not t["n"] else f"{t['mean'] / 60:.1f} ({t['n']} of {s['timed_on']['runs']})")
+        lines.append(f"| {s['scene']}{timed_note(s)} | {fmt(s['psnr_at_10_min']['mean'])} | " + " | ".join(cells)
+                     + " |")
     if curves:
         lines += ["", "## Equal training time: test PSNR (dB) after 2, 5 and 10 min", "",
                   "The reference variants trained with a test curve on the same machine as the auto runs "
@@ -463,7 +494,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     cc = any(r.get("psnr_cc") is not None for r in runs)  # the metric is newer than some runs
     heads = ["scene", "variant", "seed", "test PSNR"] + ["colour-corrected PSNR"] * cc + [
         "L1", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)", "train PSNR", "surfels", "train s", "steps",
-        "kept step", "load at the end", "code", "why it stopped"]
+        "kept step", "machine", "load at the end", "code", "why it stopped"]
     lines += ["", "## Every run", "", "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
     for r in runs:
         load = (r.get("machine") or {}).get("load_average")
@@ -472,7 +503,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                      f"{fmt(r['ssim'], '.3f')} | {fmt(r.get('lpips'), '.3f')} | "
                      f"{fmt(r.get('depth_abs_err'), '.4f')} | {fmt(r.get('normal_err_deg'), '.1f')} | "
                      f"{fmt(r['train_psnr'])} | {surfels_cell(r)} | "
-                     f"{fmt(r['train_seconds'], '.0f')} | {r['steps']} | {r['best_step']} | "
+                     f"{fmt(r['train_seconds'], '.0f')} | {r['steps']} | {r['best_step']} | {machine_kind(r)} | "
                      f"{'-' if not load else ', '.join(f'{x:.1f}' for x in load)} | "
                      f"{(r.get('code_revision') or '-')[:10]} | {r['stop_reason'] or '-'} |")
     if compaction:
@@ -520,8 +551,7 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT / "benchmarks"))  # record.py
     from record import machine_record
 
-    from ghsplat_jax.io_utils import atomic_write, code_revision, write_json
-    from ghsplat_jax.train.config import TrainConfig
+    from ghsplat_jax.train.config import TrainConfig  # loads JAX: not for --check
 
     defaults = flat(TrainConfig().to_dict())
     runs, unfinished = auto_runs(args.runs, defaults), unfinished_runs(args.runs)

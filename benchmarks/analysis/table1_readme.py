@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: auto_recipe.py
-from auto_recipe import is_seed, spread  # noqa: E402
+from auto_recipe import is_seed, spread, timed_runs  # noqa: E402
 from readme_check import report, text_diff  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -134,14 +134,18 @@ def mean_sd(values: list[float], spec: str) -> str:
 
 
 def seed_table(rows: list[dict], first: str) -> list[str]:
-    """One row per scene of the auto recipe's seeds: mean ± sd of the test metrics over them."""
-    body = []
+    """One row per scene of the auto recipe's seeds: mean ± sd of the test metrics over them, and of
+    the training seconds of the seeds on one kind of machine (timed_runs)."""
+    body, main_kind = [], timed_runs(rows)[0]
     for s in sorted({r["scene"] for r in rows}):
         rs = [r for r in rows if r["scene"] == s]
         col = lambda key: [r.get(key) for r in rs]  # noqa: E731
+        kind, timed = timed_runs(rs, main_kind)  # times of one kind of machine only
+        note = "" if len(timed) == len(rs) else f" ({len(timed)} of {len(rs)} runs: {kind})"
         body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
                      mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
-                     mean_sd(col("num_gaussians"), ",.0f"), mean_sd(col("train_seconds"), ",.0f")])
+                     mean_sd(col("num_gaussians"), ",.0f"),
+                     mean_sd([r["train_seconds"] for r in timed], ",.0f") + note])
     return table([first, "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
                   "Gaussians", "training s"], body)
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ghsplat_jax.curves import psnr_at
 from ghsplat_jax.io_utils import atomic_write, machine_info, read_jsonl, save_figure, write_json
 from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, TEST_CURVE_NAME, median_step_seconds, read_metrics
 
@@ -52,9 +53,7 @@ def series_name(row: dict) -> str:
 def psnr_by(run_dir, seconds: float) -> float | None:
     """The test PSNR a run had reached after `seconds` of training: its test curve's last point
     at or before then (None without a curve, or before its first point)."""
-    reached = [p["psnr"] for p in read_jsonl(Path(run_dir) / TEST_CURVE_NAME)
-               if p.get("elapsed_s") is not None and p["elapsed_s"] <= seconds]
-    return reached[-1] if reached else None
+    return psnr_at(read_jsonl(Path(run_dir) / TEST_CURVE_NAME), seconds)
 
 
 def psnr_at_time(row: dict, seconds: float | None) -> float | None:

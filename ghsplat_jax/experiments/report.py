@@ -8,7 +8,7 @@ import io
 import math
 from pathlib import Path
 
-from ghsplat_jax.io_utils import atomic_write, code_revision, machine_info, write_json
+from ghsplat_jax.io_utils import atomic_write, code_revision, host_label, machine_info, write_json
 from ghsplat_jax.train.run_dir import median_step_seconds, read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
@@ -41,14 +41,6 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
         "machine": m.get("machine"), "host": host_label(m.get("machine")), "code_revision": m.get("code_revision"),
         "run_dir": str(run_dir),
     }
-
-
-def host_label(machine: dict | None) -> str | None:
-    """A run's machine in a few words (processor, cores, device), so a table shows which rows
-    share one; None where the run recorded no machine."""
-    if not machine:
-        return None
-    return f"{machine.get('processor') or 'unknown CPU'} x{machine.get('cpu_count')}, {machine.get('device') or 'cpu'}"
 
 
 def collect_runs(run_dirs) -> list[dict]:

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from ghsplat_jax.config_values import coerce
-from ghsplat_jax.io_utils import atomic_write, machine_info, write_json
+from ghsplat_jax.io_utils import atomic_write, host_label, machine_info, write_json
 from ghsplat_jax.train.config import ConfigError
 
 log = logging.getLogger("ghsplat.segments")
@@ -149,8 +149,6 @@ def _make(seg: Segment, world, capture: Capture, sfm_options) -> dict:
 
 
 def _row(seg: Segment, report: dict) -> dict:
-    from ghsplat_jax.experiments.report import host_label
-
     acc = report.get("accuracy") or {}
     return {"segment": seg.scene, "row": seg.row, "end": seg.end, "status": report.get("status"),
             "registered": report.get("num_registered"), "views": report.get("num_images"),
