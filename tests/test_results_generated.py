@@ -186,3 +186,11 @@ def test_table1_seed_table_times_one_kind_of_machine(table1):
     text = "\n".join(table1.seed_table(rows, "segment"))
     assert "| a | 2 | 28.20 ± 0.28 |" in text and "| 600 (1 of 2 runs: AMD EPYC x2, cpu) |" in text
     assert "| b | 1 | 27.00 |" in text and text.rstrip().endswith("| 500 |")
+
+
+def test_timed_runs_prefers_a_recorded_machine(auto_recipe):
+    """A run with no record of its machine never sets the kind the others are timed on."""
+    intel = {"processor": "Intel Xeon", "cpu_count": 2, "device": "cpu"}
+    old, new = {"variant": "compact", "machine": None}, {"variant": "compact_seed1", "machine": intel}
+    assert auto_recipe.timed_runs([old, new]) == ("Intel Xeon x2, cpu", [new])
+    assert auto_recipe.timed_runs([old]) == ("unrecorded", [old])

@@ -248,10 +248,12 @@ def machine_kind(run: dict) -> str:
 def timed_runs(runs: list[dict], prefer: str | None = None) -> tuple[str, list[dict]]:
     """The runs whose times may be set side by side, and their kind of machine: those on `prefer`
     where any ran there (a report's main kind, so its rows compare too), else those on the kind
-    most of `runs` trained on (a tie: the first run's). Times from two kinds of machine differ by
-    their speed, not by what trained (2x between two 2-core hosts of this project)."""
+    most of `runs` trained on (a tie: the first run's; a run with no record of its machine only
+    where none has one). Times from two kinds of machine differ by their speed, not by what
+    trained (2x between two 2-core hosts of this project)."""
     kinds = [machine_kind(r) for r in runs]
-    kind = prefer if prefer in kinds else max(dict.fromkeys(kinds), key=kinds.count) if kinds else "unrecorded"
+    known = [k for k in kinds if k != "unrecorded"] or kinds
+    kind = prefer if prefer in kinds else max(dict.fromkeys(known), key=known.count) if known else "unrecorded"
     return kind, [r for r, k in zip(runs, kinds) if k == kind]
 
 

@@ -133,6 +133,14 @@ def mean_sd(values: list[float], spec: str) -> str:
     return format(s["mean"], spec) if s["n"] == 1 else f"{format(s['mean'], spec)} ± {format(s['std'], spec)}"
 
 
+def timed_seconds(rows: list[dict], main_kind: str) -> str:
+    """'mean ± sd' of the training seconds of the rows on one kind of machine (timed_runs), with
+    the kind named where rows on another are left out."""
+    kind, timed = timed_runs(rows, main_kind)
+    note = "" if len(timed) == len(rows) else f" ({len(timed)} of {len(rows)} runs: {kind})"
+    return mean_sd([r["train_seconds"] for r in timed], ",.0f") + note
+
+
 def seed_table(rows: list[dict], first: str) -> list[str]:
     """One row per scene of the auto recipe's seeds: mean ± sd of the test metrics over them, and of
     the training seconds of the seeds on one kind of machine (timed_runs)."""
@@ -140,12 +148,9 @@ def seed_table(rows: list[dict], first: str) -> list[str]:
     for s in sorted({r["scene"] for r in rows}):
         rs = [r for r in rows if r["scene"] == s]
         col = lambda key: [r.get(key) for r in rs]  # noqa: E731
-        kind, timed = timed_runs(rs, main_kind)  # times of one kind of machine only
-        note = "" if len(timed) == len(rs) else f" ({len(timed)} of {len(rs)} runs: {kind})"
         body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
                      mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
-                     mean_sd(col("num_gaussians"), ",.0f"),
-                     mean_sd([r["train_seconds"] for r in timed], ",.0f") + note])
+                     mean_sd(col("num_gaussians"), ",.0f"), timed_seconds(rs, main_kind)])
     return table([first, "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
                   "Gaussians", "training s"], body)
 
@@ -209,6 +214,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
     """The compact variant over its seeds ("compact", "compact_seedN"), on the segments with more
     than one, against the default's one run: does its gain lie outside the seeds' spread?"""
     done = [r for r in rows if is_seed(r["variant"], "compact") and r.get("psnr") is not None]
+    main_kind = timed_runs(done)[0]
     default = {r["scene"]: r for r in rows if r["variant"] == "default" and r.get("psnr") is not None}
     body = []
     for seg in sorted({r["scene"] for r in done}):
@@ -221,8 +227,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
         revisions = revision_list(rs)
         body.append([seg, len(rs), mean_sd([r["psnr"] for r in rs], ".2f"), f"{base:.2f}",
                      f"{gain['mean']:+.2f} ± {gain['std']:.2f}", f"{gain['min']:+.2f}", "yes" if outside else "no",
-                     mean_sd([r["num_gaussians"] for r in rs], ",.0f"),
-                     mean_sd([r["train_seconds"] for r in rs], ",.0f"), revisions])
+                     mean_sd([r["num_gaussians"] for r in rs], ",.0f"), timed_seconds(rs, main_kind), revisions])
     if not body:
         return []
     return ["## The compact variant over seeds", "",
