@@ -571,10 +571,16 @@ def test_auto_recipe_report_times_only_runs_of_one_kind_of_machine(tmp_path):
     _fake_run(runs, "a", "auto_seed1", 28.4, 30000, 1300.0, [(650, 27.2), (1300, 28.4)], seed=1, machine=intel)
     _fake_run(runs, "b", "auto", 27.0, 30000, 500.0, [(500, 27.0)], machine=amd)
     _fake_run(runs, "c", "auto", 26.0, 30000, 1000.0, [(1000, 26.0)], machine=intel)
+    stopped = runs / "a" / "auto_seed2"  # a stopped run: its test curve names its machine
+    stopped.mkdir()
+    (stopped / "test_curve.jsonl").write_text(json.dumps({"step": 500, "elapsed_s": 90.0, "psnr": 24.0,
+                                                          "host": "Intel Xeon x2, cpu"}) + "\n")
     ref = tmp_path / "ref.json"
     ref.write_text(json.dumps({"rows": []}))
     assert report.main(["--runs", str(runs), "--reference", str(ref), "--out", str(out)]) == 0
-    a, b, c = json.loads((out / "results.json").read_text())["summary"]
+    res = json.loads((out / "results.json").read_text())
+    a, b, c = res["summary"]
+    assert [report.machine_kind(u) for u in res["unfinished"]] == ["Intel Xeon x2, cpu"]
     assert a["psnr"]["mean"] == pytest.approx(28.2) and a["train_seconds"]["n"] == 1
     assert a["train_seconds"]["mean"] == 600.0 and a["psnr_at_10_min"]["mean"] == 28.0
     assert a["timed_on"] == {"machine": "AMD EPYC x2, cpu", "runs": 1} and b["timed_on"]["runs"] == 1

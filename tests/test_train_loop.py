@@ -444,7 +444,7 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
 
     from ghsplat_jax.eval import evaluate
     from ghsplat_jax.eval.evaluate import train_and_evaluate
-    from ghsplat_jax.io_utils import code_revision
+    from ghsplat_jax.io_utils import code_revision, host_label
     from ghsplat_jax.train.run_dir import TEST_CURVE_NAME
 
     slow = 2.0  # each evaluation made this much slower, so leaving it out shows in the step times
@@ -471,6 +471,7 @@ def test_test_curve_resumes_without_gaps_and_ends_at_the_final_metrics(tmp_path,
     assert [p["step"] for p in curve] == [10, 20, 30]
     assert all(p["num_views"] == len(dataset().test) > 0 and np.isfinite(p["psnr"]) for p in curve)
     assert all(p["code_revision"] == code_revision() and len(p["load_average"]) == 3 for p in curve)
+    assert all(p["host"] == host_label(metrics["machine"]) for p in curve)  # a stopped run's kind of machine
     assert curve[-1]["psnr"] == pytest.approx(metrics["test"]["psnr"], abs=1e-3)
     assert curve[-1]["l1"] == pytest.approx(metrics["test"]["l1"], rel=1e-4)
     stats = {r["step"]: r for r in map(json.loads, (out / STATS_NAME).read_text().splitlines())}

@@ -76,7 +76,7 @@ REFERENCE_STYLE = {"default": ("s", "black"), "compact": ("D", "gray"), "mcmc_fu
 
 def curve_points(path: Path) -> list[dict]:
     """A test_curve.jsonl's points as the results keep them."""
-    keys = ("elapsed_s", "psnr", "num_surfels", "step", "code_revision", "load_average")
+    keys = ("elapsed_s", "psnr", "num_surfels", "step", "code_revision", "host", "load_average")
     return [{k: p.get(k) for k in keys} for p in read_jsonl(path)]
 
 
@@ -92,7 +92,7 @@ def reference_curves(runs_root: Path) -> list[dict]:
             m = json.loads(metrics.read_text()) if metrics.is_file() else {}
             out.append({"scene": path.parent.parent.name, "variant": variant, "finished": bool(m),
                         "last_step": curve[-1]["step"], "num_surfels_then": curve[-1]["num_surfels"],
-                        "machine": m.get("machine"),
+                        "machine": m.get("machine"), "host": curve[-1]["host"],
                         "code_revisions": sorted({p["code_revision"] or "unrecorded" for p in curve}),
                         "curve": curve})
     return out
@@ -110,7 +110,7 @@ def unfinished_runs(runs_root: Path) -> list[dict]:
         last = curve[-1]
         out.append({"scene": run.parent.name, "variant": run.name, "last_scored_step": last["step"],
                     "psnr_then": last["psnr"], "num_surfels_then": last.get("num_surfels"),
-                    "train_seconds_then": last["elapsed_s"], "curve": curve})
+                    "train_seconds_then": last["elapsed_s"], "host": last["host"], "curve": curve})
     return out
 
 
@@ -241,8 +241,9 @@ def seeded_ablations(runs: list[dict]) -> list[dict]:
 
 
 def machine_kind(run: dict) -> str:
-    """The kind of machine a run trained on (processor, cores, device), as its record names it."""
-    return host_label(run.get("machine")) or "unrecorded"
+    """The kind of machine a run trained on (processor, cores, device), as its metrics' record
+    names it, or its test curve's for a run that has none (stopped)."""
+    return host_label(run.get("machine")) or run.get("host") or "unrecorded"
 
 
 def timed_runs(runs: list[dict], prefer: str | None = None) -> tuple[str, list[dict]]:
@@ -313,9 +314,10 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
     kind, timed = timed_runs([r for r in runs if r["scene"] == scene], timed_runs(runs)[0])
     for i, r in enumerate(r for r in runs if r["scene"] == scene):
         c = r["curve"]
-        if r not in timed:
-            ax.axhline(r["psnr"], ls=":", color=f"C{i}",
-                       label=f"{run_label(r)}, final, on {machine_kind(r)}: time not comparable")
+        if r not in timed and machine_kind(r) != "unrecorded":  # (no record: drawn, as reference curves are)
+            ax.axhline(r.get("psnr") or c[-1]["psnr"], ls=":", color=f"C{i}",
+                       label=f"{run_label(r)}, {'final' if r.get('psnr') else 'last scored'}, on "
+                             f"{machine_kind(r)}: time not comparable")
             continue
         ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-", marker=markers[i % len(markers)],
                 ms=3, color=f"C{i}", label=run_label(r))

@@ -25,7 +25,7 @@ import numpy as np
 from ghsplat_jax.data.exposure import exposure_warning, flagged_training_photos
 from ghsplat_jax.data.tracks import pose_disagreement
 from ghsplat_jax.host_memory import IN_RUN_MAP_SHARE, MAPS_CHECK_EVERY, release_compiled_programs, reuse_freed_memory
-from ghsplat_jax.io_utils import code_revision
+from ghsplat_jax.io_utils import code_revision, device_name, host_label, machine_info
 from ghsplat_jax.raster.render import capacity_bucket
 from ghsplat_jax.train import checkpoint as ckpt
 from ghsplat_jax.train import exposure as exposure_mod
@@ -591,15 +591,15 @@ def _truncate_stats(path: Path, last_step: int) -> None:
         fh.write("".join(x + "\n" for x in keep))
 
 
-def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int, revision: str) -> float:
+def _write_curve_point(curve, test_eval, session, step: int, seconds, num: int, revision: str, host: str) -> float:
     """Evaluate the test views now and append the point to the test curve; returns its seconds.
-    Each point names its code revision and the load then: a curve resumed later (another
-    revision, another load) is a time axis only as far as its points agree."""
+    Each point names its code revision, its kind of machine and the load then: a curve resumed
+    later (another revision, host or load) is a time axis only as far as its points agree."""
     t = time.perf_counter()
     point = test_eval(session.state.params, session.state.active, session.pair_capacity)
     spent = time.perf_counter() - t
     record = dict(step=step, elapsed_s=round(seconds() - spent, 3), num_surfels=num, eval_seconds=round(spent, 3),
-                  code_revision=revision, load_average=[round(x, 2) for x in os.getloadavg()])
+                  code_revision=revision, host=host, load_average=[round(x, 2) for x in os.getloadavg()])
     curve.write(json.dumps(_jsonable(record | point), allow_nan=False) + "\n")
     curve.flush()
     log.info("step %d: test PSNR %.2f dB over %d views (%.1f s to evaluate)", step, point["psnr"], point["num_views"],
@@ -678,10 +678,11 @@ def train(config: TrainConfig, out_dir, dataset=None, resume: bool = False, rend
     stop = config.steps if until is None else min(until, config.steps)
 
     revision = code_revision() if curve is not None else ""
+    host = host_label(machine_info(start_backend=False) | {"device": device_name()}) if curve is not None else ""
 
     def curve_point():  # inside session.step(step): the model before the step's strategy round
         nonlocal paused, last_t
-        spent = _write_curve_point(curve, test_eval, session, step + 1, seconds, num, revision)
+        spent = _write_curve_point(curve, test_eval, session, step + 1, seconds, num, revision, host)
         paused += spent  # the test curve's time is not training time,
         last_t += spent  # nor does the steps-per-second rate count it
 
