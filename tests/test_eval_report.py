@@ -248,6 +248,25 @@ def test_a_time_axis_draws_one_kind_of_machine(tmp_path):
     assert sum(len(points) for points in counts.values()) == 3
 
 
+def test_a_time_axis_draws_one_kind_of_cpu(tmp_path):
+    """Two CPUs are two kinds of machine: the one with most runs (with the runs that recorded no
+    machine) in psnr_vs_time.png, the other beside it; a Pareto chart of one scene's runs on both
+    is left out."""
+    amd, intel = "AMD EPYC x2, cpu", "Intel Xeon x2, cpu"
+    row = {"variant": "auto", "psnr": 28.0, "num_gaussians": 9, "device": "cpu", "step_seconds": 0.1}
+    rows = [dict(row, scene="a", train_seconds=600.0, host=amd), dict(row, scene="b", train_seconds=500.0, host=amd),
+            dict(row, scene="c", train_seconds=700.0),  # no machine recorded
+            dict(row, scene="a", variant="auto_seed1", train_seconds=1300.0, host=intel)]
+    made = {p.name for p in write_charts(rows, tmp_path, "t")}
+    assert made == {"psnr_vs_time.png", "psnr_vs_time_intel_xeon_x2_cpu.png", "psnr_vs_count.png"}
+    main = json.loads((tmp_path / "psnr_vs_time.json").read_text())
+    assert main["machine"] == amd and sorted(p["scene"] for p in main["series"]["auto"]) == ["a", "b", "c"]
+    other = json.loads((tmp_path / "psnr_vs_time_intel_xeon_x2_cpu.json").read_text())
+    assert other["title"] == f"t: runs on {intel}" and list(other["series"]) == ["auto_seed1"]
+    pareto = json.loads(write_pareto_charts(rows, tmp_path, "t", reference="auto")[-1].read_text())
+    assert pareto["scenes"]["a"]["left_out"] == f"its runs ran on different machines ({amd}; {intel})"
+
+
 def test_median_step_seconds_skips_the_clock_restart_of_a_resume(tmp_path):
     from ghsplat_jax.train.run_dir import STATS_NAME, median_step_seconds
 

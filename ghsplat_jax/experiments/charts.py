@@ -64,29 +64,40 @@ def device_slug(device: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", device.lower()).strip("_")
 
 
-def by_device(rows: list[dict]) -> dict[str, list[dict]]:
-    """{device: rows} with the CPU ("cpu"; rows that name none ran before metrics named it) first."""
+def by_machine(rows: list[dict]) -> dict[str, list[dict]]:
+    """{kind of machine: rows}: a row's `host` (processor, cores, device), or for a row that records
+    none (it ran before rows named their machine) its device, joined to the most common host of
+    that device where there is one. The kind with most CPU rows comes first."""
+    hosts: dict[str, dict[str, int]] = {}  # device -> {host: rows}
+    for r in rows:
+        if r.get("host"):
+            count = hosts.setdefault(r.get("device") or "cpu", {})
+            count[r["host"]] = count.get(r["host"], 0) + 1
     groups: dict[str, list[dict]] = {}
     for r in rows:
-        groups.setdefault(r.get("device") or "cpu", []).append(r)
-    return dict(sorted(groups.items(), key=lambda kv: (kv[0] != "cpu", kv[0])))
+        device = r.get("device") or "cpu"
+        kind = r.get("host") or (max(hosts[device], key=hosts[device].get) if device in hosts else device)
+        groups.setdefault(kind, []).append(r)
+    return dict(sorted(groups.items(), key=lambda kv: ((kv[1][0].get("device") or "cpu") != "cpu", -len(kv[1]))))
 
 
 def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
     """The PNG charts of CHARTS that have data, each with its series as JSON beside it. A time
-    axis draws one kind of machine: the CPU's runs in STEM.png, another device's in
-    STEM_DEVICE.png (a GPU's seconds against a CPU's compare nothing)."""
+    axis draws one kind of machine (by_machine): the first kind's runs in STEM.png, another's in
+    STEM_KIND.png (a GPU's seconds against a CPU's, or one CPU's against another's, compare
+    nothing but the machines)."""
     folder = Path(folder)
     made = []
     for stem, x, y, xlabel, ylabel in CHARTS:
-        groups = by_device(rows) if x in TIME_AXES else {"cpu": rows}
-        for device, part in groups.items():
+        groups = by_machine(rows) if x in TIME_AXES else {"": rows}
+        for i, (kind, part) in enumerate(groups.items()):
             series = scatter_series(part, x, y)
             if not series:
                 continue
-            name = stem if device == "cpu" else f"{stem}_{device_slug(device)}"
-            label = title if x not in TIME_AXES or len(groups) == 1 else f"{title}: runs on {device}"
-            meta = {"device": device} if x in TIME_AXES else {}  # the one kind of machine a time axis draws
+            name = stem if i == 0 else f"{stem}_{device_slug(kind)}"
+            label = title if x not in TIME_AXES or len(groups) == 1 else f"{title}: runs on {kind}"
+            # the one kind of machine a time axis draws
+            meta = {"device": part[0].get("device") or "cpu", "machine": kind} if x in TIME_AXES else {}
             write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, **meta, "series": series})
             made.append(save_figure(scatter_figure(series, xlabel, ylabel, label, log_x=True), folder / f"{name}.png",
                                     dpi=120))
@@ -116,8 +127,10 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
         if len(runs) < 2:
             continue
         devices = sorted({str(r.get("device")) for r in runs})  # "None": a run from before metrics named it
-        if len(devices) > 1:  # a GPU's step time against a CPU's draws no front
-            summary[scene] = {"left_out": f"its runs ran on different devices ({', '.join(devices)})"}
+        hosts = sorted({r["host"] for r in runs if r.get("host")})
+        if len(devices) > 1 or len(hosts) > 1:  # a GPU's step time against a CPU's (or two CPUs') draws no front
+            what = f"devices ({', '.join(devices)})" if len(devices) > 1 else f"machines ({'; '.join(hosts)})"
+            summary[scene] = {"left_out": f"its runs ran on different {what}"}
             continue
         on_front = pareto_front([(r[cost], r[quality]) for r in runs])
         summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}
