@@ -162,13 +162,13 @@ def psnr_then(curve: list[dict], seconds: float, finished: bool) -> float | None
     return psnr_at(curve, seconds)
 
 
-def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str | None = None) -> dict:
+def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str) -> dict:
     """Test PSNR after each of EQUAL_TIMES_S of training: the auto seeds' mean, and each reference
-    curve's trained on `kind` of machine (or with no record of one; None: any)."""
+    curve's trained on `kind` of machine (or with no record of one)."""
     seeds = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
     row = {"auto": {f"{t:g}": spread([psnr_then(r["curve"], t, True) for r in seeds]) for t in EQUAL_TIMES_S}}
     for c in curves:
-        if c["scene"] == scene and (kind is None or machine_kind(c) in (kind, "unrecorded")):
+        if c["scene"] == scene and machine_kind(c) in (kind, "unrecorded"):
             row[c["variant"]] = {f"{t:g}": psnr_then(c["curve"], t, c["finished"]) for t in EQUAL_TIMES_S}
     return row
 
