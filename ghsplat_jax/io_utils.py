@@ -148,6 +148,30 @@ def host_label(machine: dict | None) -> str | None:
     return f"{machine.get('processor') or 'unknown CPU'} x{machine.get('cpu_count')}, {machine.get('device') or 'cpu'}"
 
 
+def machine_kind(row: dict, among: list[dict] = ()) -> str:
+    """The kind of machine a row (a run, or its record in a results file) ran on, whose times may
+    be set side by side: its `host` (host_label's words). A row that names none ran before rows
+    recorded their machine: it takes the host most rows of its device in `among` name (until then
+    this project's CPU rows ran on one host), else its device."""
+    if row.get("host"):
+        return row["host"]
+    device = row.get("device") or "cpu"
+    hosts = [r["host"] for r in among if r.get("host") and (r.get("device") or "cpu") == device]
+    return max(dict.fromkeys(hosts), key=hosts.count) if hosts else device
+
+
+def one_machine(rows: list[dict], prefer: str | None = None, among: list[dict] | None = None
+                ) -> tuple[str, list[dict]]:
+    """The rows whose times may be set side by side, and their kind of machine (machine_kind over
+    `among`, the whole report, by default `rows`): those of `prefer` where any ran there (a report's
+    main kind, so its tables compare too), else those of the kind most rows ran on (a tie: the first
+    row's). Times from two kinds of machine differ by the machines' speed, not by what ran (2x
+    between two 2-core hosts of this project)."""
+    kinds = [machine_kind(r, rows if among is None else among) for r in rows]
+    kind = prefer if prefer in kinds else max(dict.fromkeys(kinds), key=kinds.count) if kinds else "cpu"
+    return kind, [r for r, k in zip(rows, kinds) if k == kind]
+
+
 _REFERENCE_SECONDS: list[float] = []
 
 

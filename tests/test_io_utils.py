@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from ghsplat_jax.io_utils import atomic_path, atomic_write, machine_info
+from ghsplat_jax.io_utils import atomic_path, atomic_write, machine_info, machine_kind, one_machine
 
 
 def test_atomic_write_replaces_a_file_only_on_success(tmp_path):
@@ -58,3 +58,15 @@ def test_code_revision_is_read_once_so_a_checkout_moved_under_a_run_does_not_ren
 
     monkeypatch.setattr(subprocess, "run", moved)
     assert code_revision() == first
+
+
+def test_a_row_without_a_machine_record_joins_its_devices_main_host():
+    """A row from before rows recorded their machine is timed with the host most rows of its device
+    name, never with another device's; a row's own record always wins."""
+    amd, intel = "AMD EPYC x2, cpu", "Intel Xeon x2, cpu"
+    old, gpu = {"variant": "compact", "device": "cpu"}, {"variant": "compact", "device": "NVIDIA H200"}
+    rows = [old, gpu, {"host": amd}, {"host": amd}, {"host": intel}]
+    assert [machine_kind(r, rows) for r in rows] == ["AMD EPYC x2, cpu", "NVIDIA H200", amd, amd, intel]
+    assert one_machine(rows) == (amd, [old, rows[2], rows[3]])
+    assert one_machine(rows, prefer=intel) == (intel, [rows[4]])
+    assert one_machine([old]) == ("cpu", [old])  # nothing to join: its device

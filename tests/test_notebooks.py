@@ -3,7 +3,10 @@
 
 Each notebook runs in a fresh Jupyter kernel (nbclient) of this very interpreter, importing this
 checkout's package; its files go to a temporary folder. GHSPLAT_NOTEBOOK_TIMEOUT (seconds, default
-300) is the limit per notebook, all cells together.
+900) is the limit per notebook, all cells together: a guard against a hang, not a speed target (those
+live in benchmarks/). The suite runs two test files at a time, and this project's 2-core hosts differ
+2x in speed: beside another file on the slower one (load average 3.8), 02_experiment_charts went
+past 300 s.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
-LIMIT_S = float(os.environ.get("GHSPLAT_NOTEBOOK_TIMEOUT", "300"))
+LIMIT_S = float(os.environ.get("GHSPLAT_NOTEBOOK_TIMEOUT", "900"))
 KERNEL = "ghsplat-test-python"
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 

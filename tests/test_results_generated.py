@@ -177,20 +177,11 @@ def test_compact_seeds_are_judged_against_the_default_by_their_spread(table1):
 def test_table1_seed_table_times_one_kind_of_machine(table1):
     """A segment whose seeds trained on two kinds of machine: its PSNR over every seed, its
     training seconds over the table's main kind only, with the kind named."""
-    amd = {"processor": "AMD EPYC", "cpu_count": 2, "device": "cpu"}
-    intel = {"processor": "Intel Xeon", "cpu_count": 2, "device": "cpu"}
+    amd, intel = "AMD EPYC x2, cpu", "Intel Xeon x2, cpu"  # the runs' host, as results.json names it
     row = dict(variant="auto", ssim=0.9, lpips=0.2, depth_abs_err=0.04, normal_err_deg=30.0, num_gaussians=20000)
-    rows = [dict(row, scene="a", psnr=28.0, train_seconds=600.0, machine=amd),
-            dict(row, scene="a", variant="auto_seed1", psnr=28.4, train_seconds=1300.0, machine=intel),
-            dict(row, scene="b", psnr=27.0, train_seconds=500.0, machine=amd)]
+    rows = [dict(row, scene="a", psnr=28.0, train_seconds=600.0, host=amd),
+            dict(row, scene="a", variant="auto_seed1", psnr=28.4, train_seconds=1300.0, host=intel),
+            dict(row, scene="b", psnr=27.0, train_seconds=500.0, host=amd)]
     text = "\n".join(table1.seed_table(rows, "segment"))
     assert "| a | 2 | 28.20 ± 0.28 |" in text and "| 600 (1 of 2 runs: AMD EPYC x2, cpu) |" in text
     assert "| b | 1 | 27.00 |" in text and text.rstrip().endswith("| 500 |")
-
-
-def test_timed_runs_prefers_a_recorded_machine(auto_recipe):
-    """A run with no record of its machine never sets the kind the others are timed on."""
-    intel = {"processor": "Intel Xeon", "cpu_count": 2, "device": "cpu"}
-    old, new = {"variant": "compact", "machine": None}, {"variant": "compact_seed1", "machine": intel}
-    assert auto_recipe.timed_runs([old, new]) == ("Intel Xeon x2, cpu", [new])
-    assert auto_recipe.timed_runs([old]) == ("unrecorded", [old])

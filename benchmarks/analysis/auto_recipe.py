@@ -41,7 +41,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: rea
 from readme_check import report, text_diff  # noqa: E402
 
 from ghsplat_jax.curves import psnr_at, time_to  # JAX-free modules: --check runs without JAX
-from ghsplat_jax.io_utils import atomic_write, code_revision, host_label, read_jsonl, write_json
+from ghsplat_jax.io_utils import (
+    atomic_write,
+    code_revision,
+    host_label,
+    machine_kind,
+    one_machine,
+    read_jsonl,
+    write_json,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -124,6 +132,7 @@ def auto_runs(runs_root: Path, defaults: dict | None = None) -> list[dict]:
         cfg = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
         test = m.get("test") or {}
         stop = m.get("stop") or {}
+        curve = curve_points(run / "test_curve.jsonl")
         out.append({"scene": run.parent.name, "variant": run.name, "seed": cfg.get("seed"),
                     "settings": (defaults or {}) | flat(cfg),
                     **{k: test.get(k) for k in ("psnr", "psnr_cc", "l1", "ssim", "lpips", "depth_abs_err",
@@ -133,7 +142,7 @@ def auto_runs(runs_root: Path, defaults: dict | None = None) -> list[dict]:
                     "train_seconds": m.get("train_seconds"), "steps": m.get("steps"),
                     "best_step": stop.get("best_step"), "stop_reason": stop.get("reason"),
                     "device": m.get("device"), "machine": m.get("machine"), "code_revision": m.get("code_revision"),
-                    "curve": curve_points(run / "test_curve.jsonl")})
+                    "host": host_label(m.get("machine")) or (curve[-1]["host"] if curve else None), "curve": curve})
     return out
 
 
@@ -162,13 +171,13 @@ def psnr_then(curve: list[dict], seconds: float, finished: bool) -> float | None
     return psnr_at(curve, seconds)
 
 
-def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str) -> dict:
+def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str, among: list[dict] = ()) -> dict:
     """Test PSNR after each of EQUAL_TIMES_S of training: the auto seeds' mean, and each reference
-    curve's trained on `kind` of machine (or with no record of one)."""
+    curve's trained on `kind` of machine (machine_kind over `among` and the curves)."""
     seeds = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
     row = {"auto": {f"{t:g}": spread([psnr_then(r["curve"], t, True) for r in seeds]) for t in EQUAL_TIMES_S}}
     for c in curves:
-        if c["scene"] == scene and machine_kind(c) in (kind, "unrecorded"):
+        if c["scene"] == scene and machine_kind(c, [*among, *curves]) == kind:
             row[c["variant"]] = {f"{t:g}": psnr_then(c["curve"], t, c["finished"]) for t in EQUAL_TIMES_S}
     return row
 
@@ -240,31 +249,19 @@ def seeded_ablations(runs: list[dict]) -> list[dict]:
     return out
 
 
-def machine_kind(run: dict) -> str:
-    """The kind of machine a run trained on (processor, cores, device), as its metrics' record
-    names it, or its test curve's for a run that has none (stopped)."""
-    return host_label(run.get("machine")) or run.get("host") or "unrecorded"
-
-
-def timed_runs(runs: list[dict], prefer: str | None = None) -> tuple[str, list[dict]]:
-    """The runs whose times may be set side by side, and their kind of machine: those on `prefer`
-    where any ran there (a report's main kind, so its rows compare too), else those on the kind
-    most of `runs` trained on (a tie: the first run's; a run with no record of its machine only
-    where none has one). Times from two kinds of machine differ by their speed, not by what
-    trained (2x between two 2-core hosts of this project)."""
-    kinds = [machine_kind(r) for r in runs]
-    known = [k for k in kinds if k != "unrecorded"] or kinds
-    kind = prefer if prefer in kinds else max(dict.fromkeys(known), key=known.count) if known else "unrecorded"
-    return kind, [r for r, k in zip(runs, kinds) if k == kind]
+def main_machine(runs: list[dict]) -> str:
+    """The report's main kind of machine: the one most of its recipe seeds trained on. Every
+    table and chart times the runs of that kind, or a scene's own where it has none there."""
+    return one_machine([r for r in runs if is_seed(r["variant"])])[0]
 
 
 def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dict]:
     scenes = sorted({r["scene"] for r in runs if is_seed(r["variant"])})
-    main_kind = timed_runs([r for r in runs if is_seed(r["variant"])])[0]
+    main_kind = main_machine(runs)
     out = []
     for scene in scenes:
         rs = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
-        kind, timed = timed_runs(rs, main_kind)  # every time below: these runs only
+        kind, timed = one_machine(rs, main_kind, among=runs)  # every time below: these runs only
         compact, default = refs.get((scene, "compact")), refs.get((scene, "default"))
         s = {"scene": scene, "seeds": len(rs), "psnr": spread([r["psnr"] for r in rs]),
              "num_gaussians": spread([r["num_gaussians"] for r in rs]),
@@ -287,7 +284,7 @@ def summarize(runs: list[dict], refs: dict, curves: list[dict] = ()) -> list[dic
         if default:
             s["time_to_default_psnr_s"] = [time_to(r["curve"], default["psnr"]) for r in timed]
         s["psnr_at_10_min"] = spread([psnr_at(r["curve"], TIME_GOAL_S) for r in timed])
-        s["equal_time"] = equal_time(scene, timed, list(curves), kind)
+        s["equal_time"] = equal_time(scene, timed, list(curves), kind, among=runs)
         s["time_to_level_s"] = {f"{level:g}": spread([time_to(r["curve"], level) for r in timed])
                                 for level in PSNR_LEVELS}
         out.append(s)
@@ -302,7 +299,10 @@ def run_label(r: dict) -> str:
     return f"{name} ({r['num_gaussians']:,} surfels)"
 
 
-def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dict] = ()) -> None:
+def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dict] = (),
+          main_kind: str | None = None) -> None:
+    """The scene's test PSNR against training time: its auto runs and reference curves, timed on
+    `main_kind` of machine (the report's) where the scene has runs there."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -311,22 +311,23 @@ def chart(scene: str, runs: list[dict], refs: dict, path: Path, curves: list[dic
     fig, ax = plt.subplots(figsize=(7, 4.5))
     markers = "ov^<>pP*hX"
     # a time axis draws one kind of machine: the report's main kind where the scene has runs on it
-    kind, timed = timed_runs([r for r in runs if r["scene"] == scene], timed_runs(runs)[0])
+    everything = [*runs, *curves]
+    kind, timed = one_machine([r for r in runs if r["scene"] == scene], main_kind, among=everything)
     for i, r in enumerate(r for r in runs if r["scene"] == scene):
         c = r["curve"]
-        if r not in timed and machine_kind(r) != "unrecorded":  # (no record: drawn, as reference curves are)
+        if r not in timed:
             ax.axhline(r.get("psnr") or c[-1]["psnr"], ls=":", color=f"C{i}",
                        label=f"{run_label(r)}, {'final' if r.get('psnr') else 'last scored'}, on "
-                             f"{machine_kind(r)}: time not comparable")
+                             f"{machine_kind(r, everything)}: time not comparable")
             continue
         ax.plot([p["elapsed_s"] / 60 for p in c], [p["psnr"] for p in c], "-", marker=markers[i % len(markers)],
                 ms=3, color=f"C{i}", label=run_label(r))
     for c in (c for c in curves if c["scene"] == scene):
         marker, color = REFERENCE_STYLE[c["variant"]]
         pts = c["curve"]
-        if machine_kind(c) not in (kind, "unrecorded"):
+        if machine_kind(c, everything) != kind:
             ax.axhline(pts[-1]["psnr"], ls=":", color=color,
-                       label=f"{c['variant']}, last scored, on {machine_kind(c)}: time not comparable")
+                       label=f"{c['variant']}, last scored, on {machine_kind(c, everything)}: time not comparable")
             continue
         reached = "to the end" if c["finished"] else f"to step {c['last_step']:,} (stopped)"
         ax.plot([p["elapsed_s"] / 60 for p in pts], [p["psnr"] for p in pts], "--", marker=marker, ms=3, color=color,
@@ -507,7 +508,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                      f"{fmt(r['ssim'], '.3f')} | {fmt(r.get('lpips'), '.3f')} | "
                      f"{fmt(r.get('depth_abs_err'), '.4f')} | {fmt(r.get('normal_err_deg'), '.1f')} | "
                      f"{fmt(r['train_psnr'])} | {surfels_cell(r)} | "
-                     f"{fmt(r['train_seconds'], '.0f')} | {r['steps']} | {r['best_step']} | {machine_kind(r)} | "
+                     f"{fmt(r['train_seconds'], '.0f')} | {r['steps']} | {r['best_step']} | {machine_kind(r, runs)} | "
                      f"{'-' if not load else ', '.join(f'{x:.1f}' for x in load)} | "
                      f"{(r.get('code_revision') or '-')[:10]} | {r['stop_reason'] or '-'} |")
     if compaction:
@@ -560,7 +561,8 @@ def main(argv=None) -> int:
     defaults = flat(TrainConfig().to_dict())
     runs, unfinished = auto_runs(args.runs, defaults), unfinished_runs(args.runs)
     # A carried record's settings predate the settings added since: it trained with their defaults.
-    carried = [dict(r, settings=defaults | (r.get("settings") or {}))
+    carried = [dict(r, settings=defaults | (r.get("settings") or {}),
+                    host=r.get("host") or host_label(r.get("machine")))
                for r in carried_runs(args.out / "results.json", runs)]
     runs = sorted(runs + carried, key=lambda r: (r["scene"], r["variant"]))
     if not runs and not unfinished:
@@ -576,7 +578,7 @@ def main(argv=None) -> int:
     for scene in scenes:
         interrupted = [dict(u, label=f"{u['variant']}, interrupted at step {u['last_scored_step']} "
                                      f"({u['num_surfels_then'] or 0:,} surfels)") for u in unfinished]
-        chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png", curves)
+        chart(scene, runs + interrupted, refs, args.out / f"psnr_vs_time_{scene}.png", curves, main_machine(runs))
     ablated = ablations(runs)
     compacted = args.out / "compaction.json"  # benchmarks/analysis/compaction.py's records
     compaction = [r for r in json.loads(compacted.read_text())["runs"] if r["compacted"]] if compacted.is_file() else []

@@ -22,8 +22,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: auto_recipe.py
-from auto_recipe import is_seed, spread, timed_runs  # noqa: E402
+from auto_recipe import is_seed, spread  # noqa: E402
 from readme_check import report, text_diff  # noqa: E402
+
+from ghsplat_jax.io_utils import one_machine  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -133,24 +135,24 @@ def mean_sd(values: list[float], spec: str) -> str:
     return format(s["mean"], spec) if s["n"] == 1 else f"{format(s['mean'], spec)} ± {format(s['std'], spec)}"
 
 
-def timed_seconds(rows: list[dict], main_kind: str) -> str:
-    """'mean ± sd' of the training seconds of the rows on one kind of machine (timed_runs), with
-    the kind named where rows on another are left out."""
-    kind, timed = timed_runs(rows, main_kind)
+def timed_seconds(rows: list[dict], main_kind: str, among: list[dict]) -> str:
+    """'mean ± sd' of the training seconds of the rows on one kind of machine (one_machine, the
+    kinds read over `among`), with the kind named where rows on another are left out."""
+    kind, timed = one_machine(rows, main_kind, among)
     note = "" if len(timed) == len(rows) else f" ({len(timed)} of {len(rows)} runs: {kind})"
     return mean_sd([r["train_seconds"] for r in timed], ",.0f") + note
 
 
 def seed_table(rows: list[dict], first: str) -> list[str]:
     """One row per scene of the auto recipe's seeds: mean ± sd of the test metrics over them, and of
-    the training seconds of the seeds on one kind of machine (timed_runs)."""
-    body, main_kind = [], timed_runs(rows)[0]
+    the training seconds of the seeds on one kind of machine (one_machine)."""
+    body, main_kind = [], one_machine(rows)[0]
     for s in sorted({r["scene"] for r in rows}):
         rs = [r for r in rows if r["scene"] == s]
         col = lambda key: [r.get(key) for r in rs]  # noqa: E731
         body.append([s, len(rs), mean_sd(col("psnr"), ".2f"), mean_sd(col("ssim"), ".3f"), mean_sd(col("lpips"), ".3f"),
                      mean_sd(col("depth_abs_err"), ".4f"), mean_sd(col("normal_err_deg"), ".1f"),
-                     mean_sd(col("num_gaussians"), ",.0f"), timed_seconds(rs, main_kind)])
+                     mean_sd(col("num_gaussians"), ",.0f"), timed_seconds(rs, main_kind, rows)])
     return table([first, "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
                   "Gaussians", "training s"], body)
 
@@ -214,7 +216,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
     """The compact variant over its seeds ("compact", "compact_seedN"), on the segments with more
     than one, against the default's one run: does its gain lie outside the seeds' spread?"""
     done = [r for r in rows if is_seed(r["variant"], "compact") and r.get("psnr") is not None]
-    main_kind = timed_runs(done)[0]
+    main_kind = one_machine(done, among=rows)[0]
     default = {r["scene"]: r for r in rows if r["variant"] == "default" and r.get("psnr") is not None}
     body = []
     for seg in sorted({r["scene"] for r in done}):
@@ -227,7 +229,7 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
         revisions = revision_list(rs)
         body.append([seg, len(rs), mean_sd([r["psnr"] for r in rs], ".2f"), f"{base:.2f}",
                      f"{gain['mean']:+.2f} ± {gain['std']:.2f}", f"{gain['min']:+.2f}", "yes" if outside else "no",
-                     mean_sd([r["num_gaussians"] for r in rs], ",.0f"), timed_seconds(rs, main_kind), revisions])
+                     mean_sd([r["num_gaussians"] for r in rs], ",.0f"), timed_seconds(rs, main_kind, rows), revisions])
     if not body:
         return []
     return ["## The compact variant over seeds", "",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from ghsplat_jax.io_utils import save_figure, write_json
+from ghsplat_jax.io_utils import machine_kind, save_figure, write_json
 
 CHARTS = (  # file stem, x key, y key, x label, y label
     ("psnr_vs_time", "train_seconds", "psnr", "training time (s)", "PSNR (dB)"),
@@ -65,19 +65,10 @@ def device_slug(device: str) -> str:
 
 
 def by_machine(rows: list[dict]) -> dict[str, list[dict]]:
-    """{kind of machine: rows}: a row's `host` (processor, cores, device), or for a row that records
-    none (it ran before rows named their machine) its device, joined to the most common host of
-    that device where there is one. The kind with most CPU rows comes first."""
-    hosts: dict[str, dict[str, int]] = {}  # device -> {host: rows}
-    for r in rows:
-        if r.get("host"):
-            count = hosts.setdefault(r.get("device") or "cpu", {})
-            count[r["host"]] = count.get(r["host"], 0) + 1
+    """{kind of machine (io_utils.machine_kind): rows}, the kind with most CPU rows first."""
     groups: dict[str, list[dict]] = {}
     for r in rows:
-        device = r.get("device") or "cpu"
-        kind = r.get("host") or (max(hosts[device], key=hosts[device].get) if device in hosts else device)
-        groups.setdefault(kind, []).append(r)
+        groups.setdefault(machine_kind(r, rows), []).append(r)
     return dict(sorted(groups.items(), key=lambda kv: ((kv[1][0].get("device") or "cpu") != "cpu", -len(kv[1]))))
 
 
