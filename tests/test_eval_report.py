@@ -12,6 +12,7 @@ from ghsplat_jax.experiments.charts import (
     pareto_front,
     scatter_figure,
     scatter_series,
+    split_label,
     write_charts,
     write_pareto_charts,
 )
@@ -86,6 +87,25 @@ def test_chart_series_split_by_variant_and_drawn_as_given():
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["budget", "default"]
     assert scatter_series(rows, "train_seconds", "psnr") == {}
 
+
+
+def test_a_chart_tells_every_variant_apart_and_names_its_views(tmp_path):
+    """An ablation's 13 variants on one scene: 13 different (colour, marker) pairs, 13 different
+    colours, each point labelled by its variant (not the one scene), and the split on the y axis."""
+    variants = [f"v{i:02d}" for i in range(13)]
+    rows = [{"scene": "row1_x1", "variant": v, "split": "test", "psnr": 27.0 + i / 10, "num_gaussians": 1000 + i,
+             "train_seconds": 600.0 + i} for i, v in enumerate(variants)]
+    ax = scatter_figure(scatter_series(rows, "num_gaussians", "psnr"), "surfels", "PSNR (dB)").axes[0]
+    colours = [tuple(c.get_facecolor()[0]) for c in ax.collections]
+    markers = [c.get_paths()[0].vertices.tobytes() for c in ax.collections]
+    assert len(set(colours)) == 13 and len(set(zip(colours, markers))) == 13
+    assert [t.get_text() for t in ax.texts] == variants
+    write_charts(rows, tmp_path, "ablation")
+    assert json.loads((tmp_path / "psnr_vs_time.json").read_text())["series"].keys() == set(variants)
+    unnamed = {"": scatter_series(rows[:1], "num_gaussians", "psnr")["v00"]}
+    assert [t.get_text() for t in scatter_figure(unnamed, "s", "dB").axes[0].texts] == ["row1_x1"]
+    assert split_label("PSNR (dB)", rows) == "PSNR (dB), test views"
+    assert split_label("PSNR (dB)", [{}]) == "PSNR (dB)"
 
 def test_metrics_and_summary():
     import numpy as np

@@ -185,3 +185,14 @@ def test_table1_seed_table_times_one_kind_of_machine(table1):
     text = "\n".join(table1.seed_table(rows, "segment"))
     assert "| a | 2 | 28.20 ± 0.28 |" in text and "| 600 (1 of 2 runs: AMD EPYC x2, cpu) |" in text
     assert "| b | 1 | 27.00 |" in text and text.rstrip().endswith("| 500 |")
+
+
+def test_table1_names_as_unrecorded_only_the_table_rows_without_a_training_psnr(table1):
+    """The evaluation note and the table agree: the segments it says lack a training-view PSNR are
+    those whose default or compact row shows "not recorded" (extra seeds have no column there)."""
+    text = table1.render(table1.load())
+    in_table = {line.split(" | ")[0].lstrip("| ") for line in text.splitlines()
+                if line.startswith("| row") and line.rstrip().endswith("| not recorded |")}
+    note = re.search(r"The training-view PSNR of (.+?) is not recorded", text)
+    named = set(re.split(r", | and ", note.group(1))) if note else set()
+    assert named == in_table

@@ -31,17 +31,32 @@ def scatter_series(rows: list[dict], x: str, y: str) -> dict[str, list[dict]]:
     return dict(sorted(series.items()))
 
 
+MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+
+
+def variant_style(i: int) -> dict:
+    """The i-th series' colour and marker: 20 distinct colours (tab20's strong shades, then its
+    light ones), and the markers in turn, so neighbouring series differ in shape as well."""
+    from matplotlib import colormaps
+
+    shade = (2 * i) % 20 + (i // 10) % 2
+    return {"color": colormaps["tab20"](shade), "marker": MARKERS[i % len(MARKERS)]}
+
+
 def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, title: str = "", log_x: bool = False):
-    """One marker per run, one colour per variant, labelled by scene."""
+    """One marker per run, one colour and marker per variant. Points are labelled by scene, or by
+    variant when every point is of one scene (an ablation), where a scene label says nothing."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7.6, 4.4), dpi=120)
     ax = fig.subplots()
+    one_scene = len({p["scene"] for points in series.values() for p in points}) == 1
     for i, (variant, points) in enumerate(series.items()):
-        ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, color=f"C{i}", s=36,
-                   zorder=3)
+        ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, s=36, zorder=3,
+                   **variant_style(i))
         for p in points:
-            label = f"{p['scene']} ({p['device']})" if "device" in p else p["scene"]
+            label = variant if one_scene and variant else p["scene"]
+            label = f"{label} ({p['device']})" if "device" in p else label
             ax.annotate(label, (p["x"], p["y"]), textcoords="offset points", xytext=(4, 3), fontsize=7)
     if log_x:
         ax.set_xscale("log")
@@ -54,6 +69,12 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the points, not over them
     fig.tight_layout()
     return fig
+
+
+def split_label(ylabel: str, rows: list[dict]) -> str:
+    """The y label with the views it was measured on: "PSNR (dB), test views"."""
+    splits = sorted({r["split"] for r in rows if r.get("split")})
+    return f"{ylabel}, {' or '.join(splits)} views" if splits else ylabel
 
 
 TIME_AXES = ("train_seconds",)  # an axis in seconds compares one kind of machine only
@@ -90,8 +111,8 @@ def write_charts(rows: list[dict], folder, title: str = "") -> list[Path]:
             # the one kind of machine a time axis draws
             meta = {"device": part[0].get("device") or "cpu", "machine": kind} if x in TIME_AXES else {}
             write_json(folder / f"{name}.json", {"x": x, "y": y, "title": label, **meta, "series": series})
-            made.append(save_figure(scatter_figure(series, xlabel, ylabel, label, log_x=True), folder / f"{name}.png",
-                                    dpi=120))
+            fig = scatter_figure(series, xlabel, split_label(ylabel, part), label, log_x=True)
+            made.append(save_figure(fig, folder / f"{name}.png", dpi=120))
     return made
 
 
@@ -99,6 +120,9 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
     """Which (cost, quality) points no other point beats: cost no higher and quality no lower,
     one of them strictly."""
     return [not any(c2 <= c and q2 >= q and (c2 < c or q2 > q) for c2, q2 in points) for c, q in points]
+
+
+AXIS_LABELS = {"step_seconds": "median step time (s)", "train_seconds": "training time (s)", "psnr": "PSNR (dB)"}
 
 
 def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "step_seconds",
@@ -130,15 +154,15 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
         ax = fig.subplots()
         front = sorted((r[cost], r[quality]) for r, f in zip(runs, on_front) if f)
         ax.step([c for c, _ in front], [q for _, q in front], where="post", color="0.5", lw=1, label="Pareto front")
-        for r, f in zip(runs, on_front):
-            ax.scatter(r[cost], r[quality], s=40, zorder=3, color="C0" if f else "C7")
+        for i, (r, f) in enumerate(zip(runs, on_front)):  # off the front: faded
+            ax.scatter(r[cost], r[quality], s=40, zorder=3, alpha=1.0 if f else 0.4, **variant_style(i))
             if r["variant"] == reference:
                 ax.scatter(r[cost], r[quality], s=160, facecolors="none", edgecolors="C3", zorder=4,
                            label=f"{reference} (chosen)")
             ax.annotate(r["variant"], (r[cost], r[quality]), textcoords="offset points", xytext=(4, 3), fontsize=7)
         ax.set_xscale("log")
-        ax.set_xlabel(cost.replace("_", " "))
-        ax.set_ylabel(quality.upper() if quality == "psnr" else quality)
+        ax.set_xlabel(AXIS_LABELS.get(cost, cost.replace("_", " ")))
+        ax.set_ylabel(split_label(AXIS_LABELS.get(quality, quality), runs))
         ax.set_title(f"{title}: {scene}" if title else scene)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
