@@ -209,11 +209,13 @@ def test_pareto_front_and_its_chart(tmp_path):
     assert [p.name for p in made] == ["pareto_s.png", "pareto.json"]
     front = json.loads(made[1].read_text())["scenes"]["s"]
     assert {v: f["on_front"] for v, f in front.items()} == {"default": True, "tile16": False, "box3": True}
-    # a GPU's step time beside a CPU's draws no front: the scene is left out, and says why
+    # a GPU's step time beside a CPU's draws no front: the scene is left out, says why, and the
+    # chart an earlier report drew for it goes, so the folder shows no front the JSON disowns
     mixed = [dict(rows[0], device="NVIDIA H200"), dict(rows[1], device="cpu")]
-    made = write_pareto_charts(mixed, tmp_path / "mixed", "t")
+    made = write_pareto_charts(mixed, tmp_path, "t")
     assert [p.name for p in made] == ["pareto.json"]
     assert "different devices (NVIDIA H200, cpu)" in json.loads(made[0].read_text())["scenes"]["s"]["left_out"]
+    assert not (tmp_path / "pareto_s.png").exists()
 
 
 def test_rows_and_charts_name_an_accelerator(tmp_path):

@@ -129,7 +129,8 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
                         quality: str = "psnr", reference: str = "default", stem: str = "pareto") -> list[Path]:
     """Per scene with two or more variants on one device: quality against cost, the Pareto front
     drawn and the `reference` variant (the chosen defaults) ringed, in STEM_SCENE.png; STEM.json
-    says which variants are on it, and which scenes were left out for mixing devices."""
+    says which variants are on it, and which scenes were left out for mixing devices. A scene's
+    chart from an earlier report that this one no longer draws is deleted, so no stale front stays."""
     from matplotlib.figure import Figure
 
     folder = Path(folder)
@@ -140,12 +141,14 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
     summary, made = {}, []
     for scene, runs in sorted(by_scene.items()):
         if len(runs) < 2:
+            (folder / f"{stem}_{scene}.png").unlink(missing_ok=True)
             continue
         devices = sorted({str(r.get("device")) for r in runs})  # "None": a run from before metrics named it
         hosts = sorted({r["host"] for r in runs if r.get("host")})
         if len(devices) > 1 or len(hosts) > 1:  # a GPU's step time against a CPU's (or two CPUs') draws no front
             what = f"devices ({', '.join(devices)})" if len(devices) > 1 else f"machines ({'; '.join(hosts)})"
             summary[scene] = {"left_out": f"its runs ran on different {what}"}
+            (folder / f"{stem}_{scene}.png").unlink(missing_ok=True)
             continue
         on_front = pareto_front([(r[cost], r[quality]) for r in runs])
         summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}
