@@ -141,14 +141,12 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
     summary, made = {}, []
     for scene, runs in sorted(by_scene.items()):
         if len(runs) < 2:
-            (folder / f"{stem}_{scene}.png").unlink(missing_ok=True)
             continue
         devices = sorted({str(r.get("device")) for r in runs})  # "None": a run from before metrics named it
         hosts = sorted({r["host"] for r in runs if r.get("host")})
         if len(devices) > 1 or len(hosts) > 1:  # a GPU's step time against a CPU's (or two CPUs') draws no front
             what = f"devices ({', '.join(devices)})" if len(devices) > 1 else f"machines ({'; '.join(hosts)})"
             summary[scene] = {"left_out": f"its runs ran on different {what}"}
-            (folder / f"{stem}_{scene}.png").unlink(missing_ok=True)
             continue
         on_front = pareto_front([(r[cost], r[quality]) for r in runs])
         summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}
@@ -171,6 +169,9 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
         ax.legend(fontsize=8)
         fig.tight_layout()
         made.append(save_figure(fig, folder / f"{stem}_{scene}.png", dpi=120))
+    for scene in {r["scene"] for r in rows}:  # a front an earlier report drew and this one does not
+        if (chart := folder / f"{stem}_{scene}.png") not in made:
+            chart.unlink(missing_ok=True)
     if summary:
         made.append(write_json(folder / f"{stem}.json", {"cost": cost, "quality": quality, "reference": reference,
                                                         "scenes": summary}))
