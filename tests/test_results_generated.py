@@ -8,6 +8,7 @@ Generators checked (each renders from committed files only, no run folders):
   benchmarks/results/auto_recipe/real/README.md and .../table1_384/README.md (each from its results.json)
 - benchmarks/robustness/sfm_crosscheck.py -> benchmarks/results/sfm_crosscheck/README.md (from its results.json)
 - benchmarks/analysis/exposure.py      -> benchmarks/results/exposure_real/README.md (from its results.json)
+- benchmarks/analysis/ablation_readme.py -> benchmarks/results/raster_ablation/auto_cpu/README.md
 
 The first two import no JAX; sfm_crosscheck's module does (its table helper): a few seconds.
 """
@@ -73,6 +74,39 @@ def test_exposure_readme_is_generated():
         pytest.skip("no exposure_real results committed")
     diff = _module("benchmarks/analysis/exposure.py").check(out)
     assert not diff, "exposure_real/README.md differs from its results.json:\n" + diff
+
+
+@pytest.fixture(scope="module")
+def ablation():
+    return _module("benchmarks/analysis/ablation_readme.py")
+
+
+def test_ablation_readme_is_generated(ablation):
+    readme = RESULTS / "raster_ablation" / "auto_cpu" / "README.md"
+    diff = ablation.check(readme)
+    assert not diff, "raster_ablation/auto_cpu/README.md differs from benchmarks/analysis/ablation_readme.py's:\n" + diff
+
+
+def test_ablation_judges_each_variant_against_the_seed_noise(ablation):
+    """Beyond noise means past 2*sqrt(2) seed sds from the default, on the preset's scene only; a
+    variant of the experiment without a row is listed as not yet run, with its command."""
+    data = ablation.load()
+    scene = data["preset"]["scenes"][0]["name"]
+    row = dict(split="test", ssim=0.9, lpips=0.2, depth_abs_err=0.03, normal_err_deg=20.0, num_gaussians=20000,
+               steps=8000, train_seconds=600.0, step_seconds=0.07, host="h", code_revision="c" * 40)
+    seeds = [dict(row, scene=scene, variant=v, psnr=p) for v, p in
+             (("auto", 28.0), ("auto_seed1", 28.2), ("auto_seed2", 28.4))]  # sd 0.2: beyond noise past 0.57 dB
+    data["table1"] = seeds + [dict(row, scene="other", variant="auto_seed1", psnr=20.0)]
+    data["timing"] = None
+    names = list(data["variants"])
+    data["rows"] = [dict(row, scene=scene, variant="default", psnr=28.0),
+                    dict(row, scene=scene, variant=names[1], psnr=27.0),
+                    dict(row, scene=scene, variant=names[2], psnr=28.5),
+                    dict(row, scene="other", variant=names[3], psnr=35.0)]
+    text = ablation.render(data)
+    assert "0.57 dB" in text and "Runs: 3 of" in text
+    assert f"| {names[1]} | " in text and "| -1.00 | worse |" in text and "| +0.50 | no |" in text
+    assert f"| {names[3]} | " not in text and f"`{names[3]}`" in text.split("## Not yet run")[1]
 
 
 def test_sfm_crosscheck_readme_is_generated():

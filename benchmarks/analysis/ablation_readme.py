@@ -1,0 +1,170 @@
+"""README of the rasterizer ablation at protocol size (raster_ablation, preset auto_cpu).
+
+    python benchmarks/analysis/ablation_readme.py          # writes RESULTS/raster_ablation/auto_cpu/README.md
+    python benchmarks/analysis/ablation_readme.py --check  # exit 1 with a diff when the README differs
+
+Reads only committed files: the ablation's results.json (and step_timing.json once
+benchmarks/speed/ablation_timing.py has re-timed the steps), the variants' settings in
+experiments/raster_ablation.toml, and the seed spread of the auto recipe on the same segment from
+benchmarks/results/table1_greenhouse/results.json. Every variant trains with seed 0, so one run
+per variant: a difference from the default counts only where it exceeds the noise of two single
+runs, 2 * sqrt(2) * the recipe's seed sd on that segment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tomllib
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: the other READMEs' scripts
+from auto_recipe import flat, is_seed, spread  # noqa: E402
+from readme_check import report, text_diff  # noqa: E402
+from table1_readme import names, signed, table  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "benchmarks" / "results"
+EXPERIMENT = ROOT / "experiments" / "raster_ablation.toml"
+PRESET = "auto_cpu"
+SCRIPT = "benchmarks/analysis/ablation_readme.py"
+BASE = "default"
+SAME_GRADIENTS = ("skip_chunks", "skip_none")  # walk more of the backward's chunks; the same sums
+
+
+def load(results: Path = RESULTS, experiment: Path = EXPERIMENT) -> dict:
+    """Every file the README is made from, parsed."""
+    folder = results / "raster_ablation" / PRESET
+    timing = folder / "step_timing.json"
+    config = tomllib.loads(experiment.read_text())
+    return {"rows": [r for r in json.loads((folder / "results.json").read_text())["rows"] if r["split"] == "test"],
+            "timing": json.loads(timing.read_text()) if timing.is_file() else None,
+            "variants": {v["name"]: flat(v.get("train", {})) for v in config["variants"]},
+            "preset": config["presets"][PRESET], "prepare": config["prepare"],
+            "table1": json.loads((results / "table1_greenhouse" / "results.json").read_text())["rows"]}
+
+
+def seed_noise(table1_rows: list[dict], scene: str) -> dict:
+    """The auto recipe's test PSNR over its seeds on `scene` (Table 1, same size and recipe)."""
+    return spread([r.get("psnr") for r in table1_rows
+                   if r["scene"] == scene and r["split"] == "test" and is_seed(r["variant"])])
+
+
+def setting(overrides: dict) -> str:
+    return ", ".join(f"`{k} = {json.dumps(v)}`" for k, v in overrides.items()) or "(the defaults)"
+
+
+def verdict(delta: float, noise: float) -> str:
+    if abs(delta) <= noise:
+        return "no"
+    return "better" if delta > 0 else "worse"
+
+
+def render(data: dict) -> str:
+    rows, variants = data["rows"], data["variants"]
+    scene_cfg = data["preset"]["scenes"][0]  # the preset's one scene
+    scene = scene_cfg["name"]
+    by = {r["variant"]: r for r in rows if r["scene"] == scene}
+    base = by.get(BASE)
+    noise = seed_noise(data["table1"], scene)
+    threshold = 2 * math.sqrt(2) * noise["std"] if noise["n"] > 1 else None
+    timed = (data["timing"] or {}).get("scenes", {}).get(scene, {})
+    revisions = sorted({r.get("code_revision", "")[:7] for r in by.values()})
+    hosts = sorted({r.get("host", "?") for r in by.values()})
+
+    prep, down = data["prepare"], scene_cfg.get("train", {}).get("downscale", 1.0)
+    size = f"{round(prep['width'] / down)}x{round(prep['height'] / down)}"
+    out = [f"# Rasterizer ablation at protocol size (raster_ablation, preset {PRESET})", "",
+           "Every variant changes one rasterizer or loss choice of the defaults and trains with the auto recipe "
+           "(self-sized, self-stopped), so a choice is judged by the PSNR, count and time of a whole run. Scene "
+           f"{scene} at {size} (Table 1's size), seed 0 for every variant. Made by `ghsplat run "
+           f"experiments/raster_ablation.toml --preset {PRESET}`; this README by `{SCRIPT}`.", "",
+           f"- Runs: {len(by)} of {len(variants)} variants, on {names(hosts)}, at code "
+           f"{names([f'`{r}`' for r in revisions])}."]
+    if threshold is not None:
+        out.append(f"- Noise: the auto recipe's {noise['n']} seeds on {scene} (Table 1) score {noise['mean']:.2f} ± "
+                   f"{noise['std']:.2f} dB. The difference of two single runs then has an sd of "
+                   f"{threshold / 2:.2f} dB (√2 times), so a variant's difference from the default counts as beyond "
+                   f"noise only past twice that, {threshold:.2f} dB.")
+    out.append("- Step times: " + (
+        f"re-measured interleaved in one process from each run's final checkpoint "
+        f"({data['timing']['steps_timed']} steps each, medians; `step_timing.json`), beside the median each run "
+        "logged while it trained." if timed else
+        "the median each run logged while it trained; `benchmarks/speed/ablation_timing.py` re-times them "
+        "interleaved in one process once every variant has run."))
+    out.append("")
+
+    heads = ["variant", "setting", "test PSNR (dB)", "vs default (dB)", "beyond noise", "SSIM", "LPIPS",
+             "depth err (m)", "normal err (deg)", "Gaussians", "steps", "train s", "logged step s"]
+    if timed:
+        heads.append("interleaved step s")
+    body = []
+    for name, overrides in variants.items():
+        r = by.get(name)
+        if r is None:
+            continue
+        delta = r["psnr"] - base["psnr"] if base and name != BASE else None
+        cells = [name, setting(overrides), f"{r['psnr']:.2f}", "" if delta is None else signed(delta, ".2f"),
+                 "" if delta is None or threshold is None else verdict(delta, threshold),
+                 f"{r['ssim']:.3f}", f"{r['lpips']:.3f}" if r.get("lpips") is not None else "-",
+                 f"{r['depth_abs_err']:.4f}" if r.get("depth_abs_err") is not None else "-",
+                 f"{r['normal_err_deg']:.1f}" if r.get("normal_err_deg") is not None else "-",
+                 f"{r['num_gaussians']:,}", f"{r['steps']:,}", f"{r['train_seconds']:,.0f}",
+                 f"{r['step_seconds']:.3f}"]
+        if timed:
+            cells.append(f"{timed[name]['seconds_per_step']:.3f}" if name in timed else "-")
+        body.append(cells)
+    out += table(heads, body) + [""]
+
+    same = [v for v in SAME_GRADIENTS if v in by and base]
+    if same:
+        out += ["## Variants that change speed only", "",
+                f"{names([f'`{v}`' for v in same])} walk more of the backward pass's chunks than the default, "
+                "which skips the chunks holding no live tile-surfel pair; the gradients are the same sums, so any "
+                "difference in the result comes from the order of floating-point additions:", ""]
+        out += [f"- `{v}`: {signed(by[v]['psnr'] - base['psnr'], '.3f')} dB, {by[v]['num_gaussians']:,} against "
+                f"{base['num_gaussians']:,} Gaussians, stopped at step {by[v]['steps']:,} against "
+                f"{base['steps']:,}." for v in same]
+        out.append("")
+
+    missing = [v for v in variants if v not in by]
+    if missing:
+        out += ["## Not yet run", "",
+                f"{names([f'`{v}`' for v in missing])}. Each trains alone with "
+                f"`ghsplat run experiments/raster_ablation.toml --preset {PRESET} --only {scene}/VARIANT` (an "
+                "interrupted run resumes from its checkpoint); the report keeps the committed rows of the others.",
+                ""]
+    return "\n".join(out)
+
+
+def generate(results: Path = RESULTS) -> str:
+    return render(load(results))
+
+
+def check(readme: Path, results: Path = RESULTS) -> str:
+    """'' when `readme` is what the results files give, else a unified diff (committed -> generated)."""
+    return text_diff(readme, generate(results))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", type=Path, default=RESULTS, help="the benchmarks/results folder to read")
+    ap.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff if the README differs")
+    args = ap.parse_args(argv)
+    readme = args.results / "raster_ablation" / PRESET / "README.md"
+    if args.check:
+        return report(readme, check(readme, args.results), f"what {SCRIPT} generates; run it without --check")
+    sys.path.insert(0, str(ROOT))
+    from ghsplat_jax.io_utils import atomic_write
+
+    with atomic_write(readme, "w") as fh:
+        fh.write(generate(args.results))
+    print(f"wrote {readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
