@@ -252,6 +252,27 @@ def test_each_row_names_the_machine_and_code_it_trained_with(tmp_path):
     assert "'-' where a run trained before runs recorded them" in md
 
 
+def test_a_row_says_how_long_its_kept_model_trained_under_the_normal_prior(tmp_path):
+    """A self-stopped run keeps its best check: its geometry is that of the kept step, under the
+    normal loss only from normal_from on (none before it, none with the loss off)."""
+    from ghsplat_jax.experiments.report import run_row
+    from ghsplat_jax.train.run_dir import CONFIG_NAME, write_metrics
+
+    def run(name, config, **metrics):
+        write_metrics(tmp_path / name, {"test": {"psnr": 28.0, "num_views": 8}, "num_gaussians": 5, **metrics}, [])
+        if config is not None:
+            (tmp_path / name / CONFIG_NAME).write_text(config)
+        return run_row(tmp_path / name, name, "auto")
+
+    prior = "lambda_normal = 0.05\nnormal_from = 7000\n"
+    stopped = {"steps": 8000, "stop": {"stopped_at": 8000, "best_step": 7250}}
+    assert (lambda r: (r["kept_step"], r["normal_loss_steps"]))(run("a", prior, **stopped)) == (7250, 250)
+    assert run("b", prior, steps=8000, stop={"best_step": 6750})["normal_loss_steps"] == 0
+    assert run("c", prior, steps=30000)["normal_loss_steps"] == 23000  # no stop record: the last step is kept
+    assert run("d", "lambda_normal = 0.0\nnormal_from = 7000\n", **stopped)["normal_loss_steps"] == 0
+    assert run("e", None, **stopped)["normal_loss_steps"] is None  # no config: not known
+
+
 def test_a_time_axis_draws_one_kind_of_machine(tmp_path):
     rows = [{"scene": "a", "variant": "default", "train_seconds": 515.0, "psnr": 29.4, "num_gaussians": 9,
              "device": "NVIDIA H200"},

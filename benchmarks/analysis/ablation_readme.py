@@ -32,7 +32,7 @@ EXPERIMENT = ROOT / "experiments" / "raster_ablation.toml"
 PRESET = "auto_cpu"
 SCRIPT = "benchmarks/analysis/ablation_readme.py"
 BASE = "default"
-SAME_GRADIENTS = ("skip_chunks", "skip_none")  # walk more of the backward's chunks; the same sums
+SAME_GRADIENTS = ("skip_chunks", "skip_none")  # the backward walks pairs that add zero: the same sums
 
 
 def load(results: Path = RESULTS, experiment: Path = EXPERIMENT) -> dict:
@@ -89,6 +89,13 @@ def render(data: dict) -> str:
                    f"{noise['std']:.2f} dB. The difference of two single runs then has an sd of "
                    f"{threshold / 2:.2f} dB (√2 times), so a variant's difference from the default counts as beyond "
                    f"noise only past twice that, {threshold:.2f} dB.")
+    starts = {r["kept_step"] - r["normal_loss_steps"] for r in by.values() if r.get("normal_loss_steps")}
+    start = f"step {starts.pop():,}" if len(starts) == 1 else "`normal_from`"
+    out.append("- Geometry: depth and normal errors compare only between runs that trained alike under the "
+               f"normal-consistency loss. It starts at {start} (2DGS's start, which the auto recipe keeps), and a "
+               "self-stopped run returns the model of its best validation check, so a model kept before then has "
+               "none of it (\"normal-prior steps\" 0) and the normals of a model without the prior, whatever the "
+               "choice ablated.")
     out.append("- Step times: " + (
         f"re-measured interleaved in one process from each run's final checkpoint "
         f"({data['timing']['steps_timed']} steps each, medians; `step_timing.json`), beside the median each run "
@@ -98,7 +105,8 @@ def render(data: dict) -> str:
     out.append("")
 
     heads = ["variant", "setting", "test PSNR (dB)", "vs default (dB)", "beyond noise", "SSIM", "LPIPS",
-             "depth err (m)", "normal err (deg)", "Gaussians", "steps", "train s", "logged step s"]
+             "depth err (m)", "normal err (deg)", "normal-prior steps", "Gaussians", "steps", "train s",
+             "logged step s"]
     if timed:
         heads.append("interleaved step s")
     body = []
@@ -112,6 +120,7 @@ def render(data: dict) -> str:
                  f"{r['ssim']:.3f}", f"{r['lpips']:.3f}" if r.get("lpips") is not None else "-",
                  f"{r['depth_abs_err']:.4f}" if r.get("depth_abs_err") is not None else "-",
                  f"{r['normal_err_deg']:.1f}" if r.get("normal_err_deg") is not None else "-",
+                 f"{r['normal_loss_steps']:,}" if r.get("normal_loss_steps") is not None else "-",
                  f"{r['num_gaussians']:,}", f"{r['steps']:,}", f"{r['train_seconds']:,.0f}",
                  f"{r['step_seconds']:.3f}"]
         if timed:
@@ -122,9 +131,10 @@ def render(data: dict) -> str:
     same = [v for v in SAME_GRADIENTS if v in by and base]
     if same:
         out += ["## Variants that change speed only", "",
-                f"{names([f'`{v}`' for v in same])} walk more of the backward pass's chunks than the default, "
-                "which skips the chunks holding no live tile-surfel pair; the gradients are the same sums, so any "
-                "difference in the result comes from the order of floating-point additions:", ""]
+                "The default's backward pass walks only the tile-surfel pairs that can change an output; "
+                "`skip_chunks` walks every chunk holding such a pair, `skip_none` every pair. The pairs skipped add "
+                "exactly zero, so these variants change the time only, and any difference in their result comes "
+                "from the order of floating-point additions:", ""]
         out += [f"- `{v}`: {signed(by[v]['psnr'] - base['psnr'], '.3f')} dB, {by[v]['num_gaussians']:,} against "
                 f"{base['num_gaussians']:,} Gaussians, stopped at step {by[v]['steps']:,} against "
                 f"{base['steps']:,}." for v in same]
