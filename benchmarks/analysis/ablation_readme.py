@@ -134,7 +134,9 @@ def render(data: dict) -> str:
                 "The default's backward pass walks only the tile-surfel pairs that can change an output; "
                 "`skip_chunks` walks every chunk holding such a pair, `skip_none` every pair. The pairs skipped add "
                 "exactly zero, so these variants change the time only, and any difference in their result comes "
-                "from the order of floating-point additions:", ""]
+                "from the order of floating-point additions, grown by the recipe's discrete decisions (when the "
+                "count stops growing, when the run stops) into a different run. So it measures the recipe's own "
+                "noise at a fixed seed:", ""]
         out += [f"- `{v}`: {signed(by[v]['psnr'] - base['psnr'], '.3f')} dB, {by[v]['num_gaussians']:,} against "
                 f"{base['num_gaussians']:,} Gaussians, stopped at step {by[v]['steps']:,} against "
                 f"{base['steps']:,}." for v in same]
