@@ -25,3 +25,17 @@ def report(path: Path, diff: str, hint: str) -> int:
         return 1
     print(f"{path}: up to date")
     return 0
+
+
+def write_or_check(readme: Path, text: str, check: bool, script: str) -> int:
+    """A README script's last step: with `check`, compare (exit code 1 on a difference); else
+    write `text` atomically (the package's writer, imported only here)."""
+    if check:
+        return report(readme, text_diff(readme, text), f"what {script} generates; run it without --check")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: ghsplat_jax
+    from ghsplat_jax.io_utils import atomic_write
+
+    with atomic_write(readme, "w") as fh:
+        fh.write(text)
+    print(f"wrote {readme}")
+    return 0

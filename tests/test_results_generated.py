@@ -84,7 +84,7 @@ def ablation():
 def test_ablation_readme_is_generated(ablation):
     readme = RESULTS / "raster_ablation" / "auto_cpu" / "README.md"
     diff = ablation.check(readme)
-    assert not diff, "raster_ablation/auto_cpu/README.md differs from benchmarks/analysis/ablation_readme.py's:\n" + diff
+    assert not diff, "raster_ablation/auto_cpu/README.md differs from what its script generates:\n" + diff
 
 
 def test_ablation_judges_each_variant_against_the_seed_noise(ablation):

@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: the other READMEs' scripts
 from auto_recipe import flat, is_seed, spread  # noqa: E402
-from readme_check import report, text_diff  # noqa: E402
+from readme_check import text_diff, write_or_check  # noqa: E402
 from table1_readme import names, signed, table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -167,15 +167,7 @@ def main(argv=None) -> int:
     ap.add_argument("--check", action="store_true", help="write nothing; exit 1 with a diff if the README differs")
     args = ap.parse_args(argv)
     readme = args.results / "raster_ablation" / PRESET / "README.md"
-    if args.check:
-        return report(readme, check(readme, args.results), f"what {SCRIPT} generates; run it without --check")
-    sys.path.insert(0, str(ROOT))
-    from ghsplat_jax.io_utils import atomic_write
-
-    with atomic_write(readme, "w") as fh:
-        fh.write(generate(args.results))
-    print(f"wrote {readme}")
-    return 0
+    return write_or_check(readme, generate(args.results), args.check, SCRIPT)
 
 
 if __name__ == "__main__":
