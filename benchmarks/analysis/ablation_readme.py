@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: the other READMEs' scripts
-from auto_recipe import flat, is_seed, spread  # noqa: E402
+from auto_recipe import flat, fmt, is_seed, spread  # noqa: E402
 from readme_check import text_diff, write_or_check  # noqa: E402
 from table1_readme import names, signed, table  # noqa: E402
 
@@ -72,8 +72,8 @@ def render(data: dict) -> str:
     noise = seed_noise(data["table1"], scene)
     threshold = 2 * math.sqrt(2) * noise["std"] if noise["n"] > 1 else None
     timed = (data["timing"] or {}).get("scenes", {}).get(scene, {})
-    revisions = sorted({r.get("code_revision", "")[:7] for r in by.values()})
-    hosts = sorted({r.get("host", "?") for r in by.values()})
+    revisions = sorted({(r.get("code_revision") or "")[:7] or "not recorded" for r in by.values()})
+    hosts = sorted({r.get("host") or "a machine not recorded" for r in by.values()})
 
     prep, down = data["prepare"], scene_cfg.get("train", {}).get("downscale", 1.0)
     size = f"{round(prep['width'] / down)}x{round(prep['height'] / down)}"
@@ -117,10 +117,8 @@ def render(data: dict) -> str:
         delta = r["psnr"] - base["psnr"] if base and name != BASE else None
         cells = [name, setting(overrides), f"{r['psnr']:.2f}", "" if delta is None else signed(delta, ".2f"),
                  "" if delta is None or threshold is None else verdict(delta, threshold),
-                 f"{r['ssim']:.3f}", f"{r['lpips']:.3f}" if r.get("lpips") is not None else "-",
-                 f"{r['depth_abs_err']:.4f}" if r.get("depth_abs_err") is not None else "-",
-                 f"{r['normal_err_deg']:.1f}" if r.get("normal_err_deg") is not None else "-",
-                 f"{r['normal_loss_steps']:,}" if r.get("normal_loss_steps") is not None else "-",
+                 f"{r['ssim']:.3f}", fmt(r.get("lpips"), ".3f"), fmt(r.get("depth_abs_err"), ".4f"),
+                 fmt(r.get("normal_err_deg"), ".1f"), fmt(r.get("normal_loss_steps"), ","),
                  f"{r['num_gaussians']:,}", f"{r['steps']:,}", f"{r['train_seconds']:,.0f}",
                  f"{r['step_seconds']:.3f}"]
         if timed:

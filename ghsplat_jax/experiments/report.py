@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 
 from ghsplat_jax.io_utils import atomic_write, code_revision, host_label, machine_info, write_json
-from ghsplat_jax.train.run_dir import median_step_seconds, normal_loss_steps, read_metrics
+from ghsplat_jax.train.run_dir import kept_step, median_step_seconds, normal_loss_steps, read_metrics
 
 # GreenhouseSplat Table 1 (8 row segments, 2DGS 30k steps): the ranges our runs are compared with.
 PAPER_TABLE1 = {"l1": (0.013, 0.023), "psnr": (27.9, 32.1), "num_gaussians": (273_000, 479_000)}
@@ -27,6 +27,7 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
     if m is None:
         return None
     has_test = bool((m.get("test") or {}).get("num_views"))
+    kept = kept_step(m)
     split = "test" if has_test else "train"
     s = m[split]
     return {
@@ -37,8 +38,7 @@ def run_row(run_dir, scene: str | None = None, variant: str | None = None, exper
         "num_gaussians": m.get("num_gaussians"),
         "train_seconds": m.get("train_seconds"), "step_seconds": median_step_seconds(run_dir), "steps": m.get("steps"),
         # the step of the model kept (a self-stopped run's best check), and its steps under the normal prior
-        "kept_step": (m.get("stop") or {}).get("best_step", m.get("steps")),
-        "normal_loss_steps": normal_loss_steps(run_dir, m),
+        "kept_step": kept, "normal_loss_steps": normal_loss_steps(run_dir, kept),
         "render_seconds_per_view": m.get("render_seconds_per_view"), "device": m.get("device"),
         # where and with what code the run trained, as its training recorded it (None where it did not)
         "machine": m.get("machine"), "host": host_label(m.get("machine")), "code_revision": m.get("code_revision"),

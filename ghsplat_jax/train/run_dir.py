@@ -55,16 +55,20 @@ def read_metrics(run_dir) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def normal_loss_steps(run_dir, metrics: dict) -> int | None:
-    """How many steps of the normal-consistency loss the run's result trained with: from the
-    config's `normal_from` to the step of the model kept (a self-stopped run keeps its best
-    validation check's). A run that stops itself before `normal_from` has none, and its normals
-    are those of a model without the prior (34 against 20 degrees of mean error on row2_x1:
-    train/recipes.py), so geometry errors compare only between runs alike in this. None where
-    RUN/config.toml does not say."""
+def kept_step(metrics: dict) -> int | None:
+    """The step of the model a run's metrics describe: a self-stopped run's best validation
+    check, else its last step."""
+    return (metrics.get("stop") or {}).get("best_step", metrics.get("steps"))
+
+
+def normal_loss_steps(run_dir, kept: int | None) -> int | None:
+    """How many steps of the normal-consistency loss the model kept at step `kept` trained with:
+    from the config's `normal_from` on. A run that stops itself before `normal_from` has none, and
+    its normals are those of a model without the prior (34 against 20 degrees of mean error on
+    row2_x1: train/recipes.py), so geometry errors compare only between runs alike in this. None
+    where RUN/config.toml does not say."""
     path = Path(run_dir) / CONFIG_NAME
     config = tomllib.loads(path.read_text()) if path.is_file() else {}
-    kept = (metrics.get("stop") or {}).get("best_step", metrics.get("steps"))
     if kept is None or "normal_from" not in config or "lambda_normal" not in config:
         return None
     return max(0, int(kept) - int(config["normal_from"])) if config["lambda_normal"] > 0 else 0
