@@ -9,7 +9,11 @@ import pytest
 
 from ghsplat_jax.eval.metrics import image_metrics, summarize
 from ghsplat_jax.experiments.charts import (
+    label_box,
+    overlap,
+    pareto_figure,
     pareto_front,
+    place_labels,
     scatter_figure,
     scatter_series,
     split_label,
@@ -216,6 +220,43 @@ def test_pareto_front_and_its_chart(tmp_path):
     assert [p.name for p in made] == ["pareto.json"]
     assert "different devices (NVIDIA H200, cpu)" in json.loads(made[0].read_text())["scenes"]["s"]["left_out"]
     assert not (tmp_path / "pareto_s.png").exists()
+
+
+def test_labels_of_coinciding_points_do_not_overlap():
+    """Three points on one pixel and one beside them: each label gets its own box, clear of the
+    others and of every marker, and inside the axes."""
+    anchors = [(100.0, 100.0)] * 3 + [(108.0, 102.0)]
+    sizes = [(50.0, 12.0)] * 4
+    bounds = (0.0, 0.0, 400.0, 300.0)
+    boxes = [label_box(a, s, p) for a, s, p in zip(anchors, sizes, place_labels(anchors, sizes, bounds, marker=5.0))]
+    assert all(overlap(a, b) == 0.0 for i, a in enumerate(boxes) for b in boxes[i + 1:])
+    assert all(overlap(box, (x - 5, y - 5, x + 5, y + 5)) == 0.0 for box in boxes for x, y in anchors)
+    assert all(overlap(box, bounds) == 50.0 * 12.0 for box in boxes)
+    # against the axes' edge a label turns inward
+    corner, size = (398.0, 298.0), (50.0, 12.0)
+    box = label_box(corner, size, place_labels([corner], [size], bounds)[0])
+    assert box[2] <= 400.0 and box[3] <= 300.0
+
+
+def test_an_ablations_near_variants_get_readable_labels():
+    """The ablation's variants a few ms and 0.05 dB apart (default, no_lowpass, skip_chunks; box3
+    and median_depth): as drawn, no two variant labels overlap."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
+
+    points = {"default": (0.075, 27.72), "skip_chunks": (0.072, 27.66), "skip_none": (0.084, 27.77),
+              "tile16": (0.093, 28.10), "tile32": (0.209, 27.84), "chunk32": (0.097, 27.83),
+              "box3": (0.079, 27.94), "no_lowpass": (0.072, 27.71), "median_depth": (0.077, 27.95),
+              "distortion": (0.054, 26.48)}
+    fig = pareto_figure(list(points.values()), list(points), pareto_front(list(points.values())), "s", "dB", "t")
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()  # places the annotations
+    renderer = canvas.get_renderer()
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.texts] == list(points)
+    boxes = [Text.get_window_extent(t, renderer) for t in ax.texts]  # the words, not the leader line
+    assert not [(ax.texts[i].get_text(), ax.texts[j].get_text()) for i in range(len(boxes))
+                for j in range(i + 1, len(boxes)) if boxes[i].overlaps(boxes[j])]
 
 
 def test_rows_and_charts_name_an_accelerator(tmp_path):

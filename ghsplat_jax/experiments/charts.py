@@ -43,6 +43,87 @@ def variant_style(i: int) -> dict:
     return {"color": colormaps["tab20"](shade), "marker": MARKERS[i % len(MARKERS)]}
 
 
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in display pixels
+Place = tuple[float, float, str, str]  # a label's offset from its point and its alignment: dx, dy, ha, va
+
+
+def overlap(a: Box, b: Box) -> float:
+    """The area two boxes share (0 when they are apart or only touch)."""
+    return max(0.0, min(a[2], b[2]) - max(a[0], b[0])) * max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+
+
+def label_candidates(gap: float, height: float, rows: int = 4) -> list[Place]:
+    """Where a label may sit about its point, in the order tried: (dx, dy, horizontal, vertical
+    alignment), pixels. First the four corners beside the marker, then above and below it, then
+    further up and down on either side (drawn with a leader line), `rows` label heights out."""
+    near = [(gap, gap, "left", "bottom"), (gap, -gap, "left", "top"), (-gap, gap, "right", "bottom"),
+            (-gap, -gap, "right", "top"), (0.0, 2 * gap, "center", "bottom"), (0.0, -2 * gap, "center", "top")]
+    far = [(side * 2 * gap, up * (gap + k * height), "left" if side > 0 else "right", "bottom" if up > 0 else "top")
+           for k in range(1, rows + 1) for side in (1, -1) for up in (1, -1)]
+    return near + far
+
+
+def label_box(anchor: tuple[float, float], size: tuple[float, float], place: Place) -> Box:
+    """The box a label of `size` (width, height) covers at `place` about `anchor`."""
+    dx, dy, ha, va = place
+    x0 = anchor[0] + dx - {"left": 0.0, "center": size[0] / 2, "right": size[0]}[ha]
+    y0 = anchor[1] + dy - (size[1] if va == "top" else 0.0)
+    return (x0, y0, x0 + size[0], y0 + size[1])
+
+
+def clash(box: Box, obstacles: list[Box], bounds: Box) -> float:
+    """How badly a label's box collides: the area it shares with the obstacles plus the area
+    it leaves `bounds` by."""
+    area = (box[2] - box[0]) * (box[3] - box[1])
+    return sum(overlap(box, other) for other in obstacles) + area - overlap(box, bounds)
+
+
+def place_labels(anchors: list[tuple[float, float]], sizes: list[tuple[float, float]], bounds: Box,
+                 marker: float = 5.0, gap: float = 4.0) -> list[Place]:
+    """A place (label_candidates) for each point's label, in display pixels, chosen greedily in
+    the points' order: the first place that covers no label placed before, no marker (a square
+    of half-width `marker` about each point) and nothing outside `bounds` (the axes); where every
+    place collides, the one that collides least. Near points (an ablation's variants a few ms and
+    0.05 dB apart) so get labels that can each be read."""
+    markers = [(x - marker, y - marker, x + marker, y + marker) for x, y in anchors]
+    placed: list[Box] = []
+    chosen = []
+    for anchor, size in zip(anchors, sizes):
+        boxes = {place: label_box(anchor, size, place) for place in label_candidates(gap, size[1])}
+        costs = {place: clash(box, placed + markers, bounds) for place, box in boxes.items()}
+        best = next((place for place, cost in costs.items() if cost == 0.0), min(costs, key=costs.__getitem__))
+        chosen.append(best)
+        placed.append(boxes[best])
+    return chosen
+
+
+def annotate_points(ax, points: list[tuple[float, float]], labels: list[str], fontsize: float = 7) -> None:
+    """Label each data point where place_labels puts it; a label set off from its point gets a
+    thin leader line. Call it last, once the axes' limits and layout are final (after
+    tight_layout): the places are worked out in display pixels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = ax.figure
+    canvas = fig.canvas if hasattr(fig.canvas, "get_renderer") else FigureCanvasAgg(fig)  # a bare Figure has none
+    renderer = canvas.get_renderer()  # measures the labels
+    ax.get_xlim(), ax.get_ylim()  # settles autoscaled limits before data -> pixels
+    anchors = [tuple(ax.transData.transform(xy)) for xy in points]
+    sizes = []
+    for label in labels:
+        probe = ax.text(0, 0, label, fontsize=fontsize)
+        extent = probe.get_window_extent(renderer)
+        sizes.append((extent.width, extent.height))
+        probe.remove()
+    bb = ax.get_window_extent(renderer)
+    to_points = 72.0 / fig.dpi  # xytext is in points, the places in pixels
+    for xy, label, size, (dx, dy, ha, va) in zip(points, labels, sizes,
+                                                  place_labels(anchors, sizes, (bb.x0, bb.y0, bb.x1, bb.y1))):
+        leader = {"arrowstyle": "-", "lw": 0.5, "color": "0.5", "shrinkA": 0, "shrinkB": 3,
+                  "relpos": (0.0 if ha == "left" else 1.0, 0.0 if va == "bottom" else 1.0)}
+        ax.annotate(label, xy, textcoords="offset points", xytext=(dx * to_points, dy * to_points),
+                    fontsize=fontsize, ha=ha, va=va, arrowprops=leader if abs(dy) > size[1] else None)
+
+
 def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, title: str = "", log_x: bool = False):
     """One marker per run, one colour and marker per variant. Points are labelled by scene, or by
     variant when every point is of one scene (an ablation), where a scene label says nothing."""
@@ -51,13 +132,14 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
     fig = Figure(figsize=(7.6, 4.4), dpi=120)
     ax = fig.subplots()
     one_scene = len({p["scene"] for points in series.values() for p in points}) == 1
+    xy, labels = [], []
     for i, (variant, points) in enumerate(series.items()):
         ax.scatter([p["x"] for p in points], [p["y"] for p in points], label=variant or None, s=36, zorder=3,
                    **variant_style(i))
         for p in points:
             label = variant if one_scene and variant else p["scene"]
-            label = f"{label} ({p['device']})" if "device" in p else label
-            ax.annotate(label, (p["x"], p["y"]), textcoords="offset points", xytext=(4, 3), fontsize=7)
+            labels.append(f"{label} ({p['device']})" if "device" in p else label)
+            xy.append((p["x"], p["y"]))
     if log_x:
         ax.set_xscale("log")
     ax.set_xlabel(xlabel)
@@ -68,6 +150,7 @@ def scatter_figure(series: dict[str, list[dict]], xlabel: str, ylabel: str, titl
     if any(series):
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the points, not over them
     fig.tight_layout()
+    annotate_points(ax, xy, labels)
     return fig
 
 
@@ -125,14 +208,37 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
 AXIS_LABELS = {"step_seconds": "median step time (s)", "train_seconds": "training time (s)", "psnr": "PSNR (dB)"}
 
 
+def pareto_figure(points: list[tuple[float, float]], variants: list[str], on_front: list[bool], xlabel: str,
+                  ylabel: str, title: str, reference: str = "default"):
+    """(cost, quality) per variant on a log cost axis: the front as a step line, the points off it
+    faded, the `reference` variant ringed, each point labelled by its variant."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 4.4), dpi=120)
+    ax = fig.subplots()
+    front = sorted(p for p, f in zip(points, on_front) if f)
+    ax.step([c for c, _ in front], [q for _, q in front], where="post", color="0.5", lw=1, label="Pareto front")
+    for i, ((c, q), variant, f) in enumerate(zip(points, variants, on_front)):  # off the front: faded
+        ax.scatter(c, q, s=40, zorder=3, alpha=1.0 if f else 0.4, **variant_style(i))
+        if variant == reference:
+            ax.scatter(c, q, s=160, facecolors="none", edgecolors="C3", zorder=4, label=f"{reference} (chosen)")
+    ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    annotate_points(ax, points, variants)
+    return fig
+
+
 def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "step_seconds",
                         quality: str = "psnr", reference: str = "default", stem: str = "pareto") -> list[Path]:
     """Per scene with two or more variants on one device: quality against cost, the Pareto front
     drawn and the `reference` variant (the chosen defaults) ringed, in STEM_SCENE.png; STEM.json
     says which variants are on it, and which scenes were left out for mixing devices. A scene's
     chart from an earlier report that this one no longer draws is deleted, so no stale front stays."""
-    from matplotlib.figure import Figure
-
     folder = Path(folder)
     by_scene: dict[str, list[dict]] = {}
     for r in rows:
@@ -148,26 +254,14 @@ def write_pareto_charts(rows: list[dict], folder, title: str = "", cost: str = "
             what = f"devices ({', '.join(devices)})" if len(devices) > 1 else f"machines ({'; '.join(hosts)})"
             summary[scene] = {"left_out": f"its runs ran on different {what}"}
             continue
-        on_front = pareto_front([(r[cost], r[quality]) for r in runs])
+        points = [(r[cost], r[quality]) for r in runs]
+        on_front = pareto_front(points)
         summary[scene] = {r["variant"]: {"cost": r[cost], "quality": r[quality], "on_front": f}
                           for r, f in zip(runs, on_front)}
-        fig = Figure(figsize=(6.4, 4.4), dpi=120)
-        ax = fig.subplots()
-        front = sorted((r[cost], r[quality]) for r, f in zip(runs, on_front) if f)
-        ax.step([c for c, _ in front], [q for _, q in front], where="post", color="0.5", lw=1, label="Pareto front")
-        for i, (r, f) in enumerate(zip(runs, on_front)):  # off the front: faded
-            ax.scatter(r[cost], r[quality], s=40, zorder=3, alpha=1.0 if f else 0.4, **variant_style(i))
-            if r["variant"] == reference:
-                ax.scatter(r[cost], r[quality], s=160, facecolors="none", edgecolors="C3", zorder=4,
-                           label=f"{reference} (chosen)")
-            ax.annotate(r["variant"], (r[cost], r[quality]), textcoords="offset points", xytext=(4, 3), fontsize=7)
-        ax.set_xscale("log")
-        ax.set_xlabel(AXIS_LABELS.get(cost, cost.replace("_", " ")))
-        ax.set_ylabel(split_label(AXIS_LABELS.get(quality, quality), runs))
-        ax.set_title(f"{title}: {scene}" if title else scene)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
+        fig = pareto_figure(points, [r["variant"] for r in runs], on_front,
+                            AXIS_LABELS.get(cost, cost.replace("_", " ")),
+                            split_label(AXIS_LABELS.get(quality, quality), runs),
+                            f"{title}: {scene}" if title else scene, reference)
         made.append(save_figure(fig, folder / f"{stem}_{scene}.png", dpi=120))
     for scene in {r["scene"] for r in rows}:  # a front an earlier report drew and this one does not
         if (chart := folder / f"{stem}_{scene}.png") not in made:
