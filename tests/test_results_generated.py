@@ -107,6 +107,18 @@ def test_ablation_judges_each_variant_against_the_seed_noise(ablation):
     assert "0.57 dB" in text and "Runs: 3 of" in text
     assert f"| {names[1]} | " in text and "| -1.00 | worse |" in text and "| +0.50 | no |" in text
     assert f"| {names[3]} | " not in text and f"`{names[3]}`" in text.split("## Not yet run")[1]
+    assert "## Speed against accuracy" not in text  # no interleaved times yet: no front is drawn from logged ones
+    # re-timed interleaved: the speed column is relative to the default, and the front and the
+    # costly and the noticeable variants are named
+    data["timing"] = {"steps_timed": 8, "scenes": {scene: {"default": {"seconds_per_step": 0.1},
+                                                           names[1]: {"seconds_per_step": 0.3},
+                                                           names[2]: {"seconds_per_step": 0.1}}}}
+    text = ablation.render(data)
+    assert "| 0.300 | 3.00x |" in text and "| 0.100 | 1.00x |" in text
+    assert f"On the front of interleaved step time against test PSNR: `{names[2]}`." in text
+    assert f"More than 10% slower a step than the default: `{names[1]}` (3.00x, -1.00 dB)." in text
+    assert f"Beyond the noise (0.57 dB) in PSNR: `{names[1]}` (-1.00 dB)." in text
+    assert f"not told apart from the default by this single-seed run: `{names[2]}`." in text
 
 
 def test_sfm_crosscheck_readme_is_generated():
@@ -230,3 +242,20 @@ def test_table1_names_as_unrecorded_only_the_table_rows_without_a_training_psnr(
     note = re.search(r"The training-view PSNR of (.+?) is not recorded", text)
     named = set(re.split(r", | and ", note.group(1))) if note else set()
     assert named == in_table
+
+
+def test_ablation_timing_redraws_its_charts_from_the_times_on_record(tmp_path):
+    """--redraw times nothing: the interleaved front and table come from step_timing.json as committed."""
+    import json
+
+    folder = RESULTS / "raster_ablation" / "auto_cpu"
+    for name in ("results.json", "step_timing.json"):
+        shutil.copy(folder / name, tmp_path / name)
+    assert _module("benchmarks/speed/ablation_timing.py").main([str(tmp_path), "--redraw"]) == 0
+    timed = json.loads((tmp_path / "step_timing.json").read_text())["scenes"]
+    front = json.loads((tmp_path / "pareto_interleaved.json").read_text())["scenes"]
+    assert {s: {v: p["cost"] for v, p in vs.items()} for s, vs in front.items()} == {
+        s: {v: t["seconds_per_step"] for v, t in vs.items()} for s, vs in timed.items()}
+    table = (tmp_path / "step_timing.md").read_text()
+    assert all(f"| {v} |" in table for vs in timed.values() for v in vs)
+    assert (tmp_path / "step_timing.json").read_bytes() == (folder / "step_timing.json").read_bytes()

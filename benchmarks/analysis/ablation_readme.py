@@ -26,6 +26,8 @@ from auto_recipe import flat, fmt, is_seed, spread  # noqa: E402
 from readme_check import text_diff, write_or_check  # noqa: E402
 from table1_readme import names, signed, table  # noqa: E402
 
+from ghsplat_jax.experiments.charts import pareto_front  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
 EXPERIMENT = ROOT / "experiments" / "raster_ablation.toml"
@@ -61,6 +63,31 @@ def verdict(delta: float, noise: float) -> str:
     if abs(delta) <= noise:
         return "no"
     return "better" if delta > 0 else "worse"
+
+
+def front_summary(by: dict, timed: dict, threshold: float) -> list[str]:
+    """Which variants no other beats in interleaved step time and test PSNR together, which cost
+    more than 10% a step over the default, which differ from it by more than the noise, and which
+    it cannot be told from (step times within 10%, PSNR within the noise)."""
+    runs = [v for v in by if v in timed]
+    step = {v: timed[v]["seconds_per_step"] for v in runs}
+    gain = {v: by[v]["psnr"] - by[BASE]["psnr"] for v in runs}
+    front = [v for v, f in zip(runs, pareto_front([(step[v], by[v]["psnr"]) for v in runs])) if f]
+    slower = sorted((v for v in runs if step[v] > 1.1 * step[BASE]), key=step.__getitem__)
+    beyond = [v for v in runs if v != BASE and abs(gain[v]) > threshold]
+    alike = [v for v in runs if v != BASE and v not in beyond and abs(step[v] / step[BASE] - 1) <= 0.1]
+
+    def listed(xs: list[str]) -> str:
+        return names(xs) if xs else "none"
+
+    return ["## Speed against accuracy", "",
+            f"- On the front of interleaved step time against test PSNR: {listed([f'`{v}`' for v in front])}.",
+            "- More than 10% slower a step than the default: " + listed(
+                [f"`{v}` ({step[v] / step[BASE]:.2f}x, {signed(gain[v], '.2f')} dB)" for v in slower]) + ".",
+            f"- Beyond the noise ({threshold:.2f} dB) in PSNR: " + listed(
+                [f"`{v}` ({signed(gain[v], '.2f')} dB)" for v in beyond]) + ".",
+            "- Within 10% of the default's step time and within the PSNR noise, so not told apart from the default "
+            "by this single-seed run: " + listed([f"`{v}`" for v in alike]) + "."]
 
 
 def render(data: dict) -> str:
@@ -99,7 +126,9 @@ def render(data: dict) -> str:
     out.append("- Step times: " + (
         f"re-measured interleaved in one process from each run's final checkpoint "
         f"({data['timing']['steps_timed']} steps each, medians; `step_timing.json`), beside the median each run "
-        "logged while it trained." if timed else
+        "logged while it trained. The logged medians also count the early steps at reduced resolution and a "
+        "smaller count, so a run that stopped early logs a lower median; the interleaved times are each run's "
+        "step at its final count and full resolution, taken under one load, and are the ones to compare." if timed else
         "the median each run logged while it trained; `benchmarks/speed/ablation_timing.py` re-times them "
         "interleaved in one process once every variant has run."))
     out.append("")
@@ -108,7 +137,7 @@ def render(data: dict) -> str:
              "depth err (m)", "normal err (deg)", "normal-prior steps", "Gaussians", "steps", "train s",
              "logged step s"]
     if timed:
-        heads.append("interleaved step s")
+        heads += ["interleaved step s", "vs default"]
     body = []
     for name, overrides in variants.items():
         r = by.get(name)
@@ -122,9 +151,13 @@ def render(data: dict) -> str:
                  f"{r['num_gaussians']:,}", f"{r['steps']:,}", f"{r['train_seconds']:,.0f}",
                  f"{r['step_seconds']:.3f}"]
         if timed:
-            cells.append(f"{timed[name]['seconds_per_step']:.3f}" if name in timed else "-")
+            step = timed.get(name, {}).get("seconds_per_step")
+            ratio = step / timed[BASE]["seconds_per_step"] if step and BASE in timed and name != BASE else None
+            cells += [fmt(step, ".3f"), "" if ratio is None else f"{ratio:.2f}x"]
         body.append(cells)
     out += table(heads, body) + [""]
+    if base and BASE in timed and threshold is not None:
+        out += front_summary(by, timed, threshold) + [""]
 
     same = [v for v in SAME_GRADIENTS if v in by and base]
     if same:

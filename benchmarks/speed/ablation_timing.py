@@ -1,6 +1,6 @@
 """Re-time an experiment's variants in one process, interleaved, and redraw its Pareto charts.
 
-    python benchmarks/speed/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 8]
+    python benchmarks/speed/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 32]
 
 `ghsplat run` records each run's median step time as it trained, so runs trained at different
 times (or beside other jobs) carry different machine loads. Here every variant's training step is
@@ -34,30 +34,39 @@ from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, CONFIG_NAME, load_trainin
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, help="an experiment's results folder (with results.json)")
-    ap.add_argument("--steps", type=int, default=8, help="timed steps per variant")
+    ap.add_argument("--steps", type=int, default=32,  # 8 steps' medians moved by up to a fifth between passes
+                    help="timed steps per variant")
     ap.add_argument("--split", default="test", help="whose PSNR the charts show")
+    ap.add_argument("--redraw", action="store_true",
+                    help="time nothing: redraw the charts and table from RESULTS/step_timing.json")
     args = ap.parse_args(argv)
     rows = [r for r in json.loads((args.results / "results.json").read_text())["rows"] if r["split"] == args.split]
-    timing, charted = {}, []
-    for scene in sorted({r["scene"] for r in rows}):
-        runs = {r["variant"]: r for r in rows
-                if r["scene"] == scene and (Path(r["run_dir"]) / CHECKPOINT_NAME).is_file()}
-        configs = {v: dataclasses.replace(load_config(Path(r["run_dir"]) / CONFIG_NAME), progress=False,
-                                          checkpoint_every=0) for v, r in runs.items()}
-        dataset = load_training_data(next(iter(configs.values())))  # the variants share the scene's data
-        timed = time_steps(configs, dataset, {v: Path(r["run_dir"]) / CHECKPOINT_NAME for v, r in runs.items()},
-                           args.steps)
-        timing[scene] = timed
-        charted += [dict(r, interleaved_step_seconds=timed[v]["seconds_per_step"],
-                         interleaved_cpu_seconds=timed[v]["cpu_seconds_per_step"]) for v, r in runs.items()]
-    write_json(args.results / "step_timing.json", {"machine": machine_record(), "steps_timed": args.steps,
-                                                   "split": args.split, "scenes": timing})
+    if args.redraw:  # the charts and table again, from the times on record
+        recorded = json.loads((args.results / "step_timing.json").read_text())
+        timing, steps = recorded["scenes"], recorded["steps_timed"]
+    else:
+        timing, steps = {scene: time_scene([r for r in rows if r["scene"] == scene], args.steps)
+                         for scene in sorted({r["scene"] for r in rows})}, args.steps
+        write_json(args.results / "step_timing.json", {"machine": machine_record(), "steps_timed": steps,
+                                                       "split": args.split, "scenes": timing})
+    charted = [dict(r, interleaved_step_seconds=timing[r["scene"]][r["variant"]]["seconds_per_step"],
+                    interleaved_cpu_seconds=timing[r["scene"]][r["variant"]]["cpu_seconds_per_step"])
+               for r in rows if r["variant"] in timing.get(r["scene"], {})]
     write_pareto_charts(charted, args.results, cost="interleaved_step_seconds", stem="pareto_interleaved",
                         title="step time re-measured interleaved")
-    write_markdown(args.results / "step_timing.md", charted, args.steps)
+    write_markdown(args.results / "step_timing.md", charted, steps)
     print(json.dumps({s: {v: round(t["seconds_per_step"], 3) for v, t in tt.items()} for s, tt in timing.items()},
                      indent=1))
     return 0
+
+
+def time_scene(rows: list[dict], steps: int) -> dict:
+    """{variant: step timing} of one scene's runs that kept a checkpoint, interleaved (time_steps)."""
+    runs = {r["variant"]: r for r in rows if (Path(r["run_dir"]) / CHECKPOINT_NAME).is_file()}
+    configs = {v: dataclasses.replace(load_config(Path(r["run_dir"]) / CONFIG_NAME), progress=False,
+                                      checkpoint_every=0) for v, r in runs.items()}
+    dataset = load_training_data(next(iter(configs.values())))  # the variants share the scene's data
+    return time_steps(configs, dataset, {v: Path(r["run_dir"]) / CHECKPOINT_NAME for v, r in runs.items()}, steps)
 
 
 def write_markdown(path: Path, rows: list[dict], steps: int) -> None:

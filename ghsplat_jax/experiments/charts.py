@@ -7,6 +7,7 @@ objects: no pyplot, no global backend switch.
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -71,26 +72,36 @@ def label_box(anchor: tuple[float, float], size: tuple[float, float], place: Pla
     return (x0, y0, x0 + size[0], y0 + size[1])
 
 
-def clash(box: Box, obstacles: list[Box], bounds: Box) -> float:
-    """How badly a label's box collides: the area it shares with the obstacles plus the area
-    it leaves `bounds` by."""
+def distance(box: Box, point: tuple[float, float]) -> float:
+    """How far a point lies from a box (0 inside it)."""
+    return math.hypot(max(box[0] - point[0], 0.0, point[0] - box[2]), max(box[1] - point[1], 0.0, point[1] - box[3]))
+
+
+def clash(box: Box, obstacles: list[Box], bounds: Box, own: tuple[float, float],
+          others: list[tuple[float, float]]) -> float:
+    """How badly a label's box collides: the area it shares with the obstacles, plus the area it
+    leaves `bounds` by, plus its whole area when another point lies nearer to it than its own
+    (a reader would take it for that point's label)."""
     area = (box[2] - box[0]) * (box[3] - box[1])
-    return sum(overlap(box, other) for other in obstacles) + area - overlap(box, bounds)
+    misread = any(distance(box, p) < distance(box, own) for p in others)
+    return sum(overlap(box, other) for other in obstacles) + area - overlap(box, bounds) + area * misread
 
 
 def place_labels(anchors: list[tuple[float, float]], sizes: list[tuple[float, float]], bounds: Box,
                  marker: float = 5.0, gap: float = 4.0) -> list[Place]:
     """A place (label_candidates) for each point's label, in display pixels, chosen greedily in
     the points' order: the first place that covers no label placed before, no marker (a square
-    of half-width `marker` about each point) and nothing outside `bounds` (the axes); where every
-    place collides, the one that collides least. Near points (an ablation's variants a few ms and
-    0.05 dB apart) so get labels that can each be read."""
+    of half-width `marker` about each point) and nothing outside `bounds` (the axes), and that lies
+    nearer its own point than any other; where every place collides, the one that collides least.
+    Near points (an ablation's variants a few ms and 0.05 dB apart) so get labels that can each be
+    read, and be read as theirs."""
     markers = [(x - marker, y - marker, x + marker, y + marker) for x, y in anchors]
     placed: list[Box] = []
     chosen = []
-    for anchor, size in zip(anchors, sizes):
+    for i, (anchor, size) in enumerate(zip(anchors, sizes)):
+        others = [a for j, a in enumerate(anchors) if j != i and a != anchor]  # a point on top of it misleads no one
         boxes = {place: label_box(anchor, size, place) for place in label_candidates(gap, size[1])}
-        costs = {place: clash(box, placed + markers, bounds) for place, box in boxes.items()}
+        costs = {place: clash(box, placed + markers, bounds, anchor, others) for place, box in boxes.items()}
         best = next((place for place, cost in costs.items() if cost == 0.0), min(costs, key=costs.__getitem__))
         chosen.append(best)
         placed.append(boxes[best])
@@ -205,7 +216,8 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
     return [not any(c2 <= c and q2 >= q and (c2 < c or q2 > q) for c2, q2 in points) for c, q in points]
 
 
-AXIS_LABELS = {"step_seconds": "median step time (s)", "train_seconds": "training time (s)", "psnr": "PSNR (dB)"}
+AXIS_LABELS = {"step_seconds": "median step time (s)", "interleaved_step_seconds": "median step time, interleaved (s)",
+               "train_seconds": "training time (s)", "psnr": "PSNR (dB)"}
 
 
 def pareto_figure(points: list[tuple[float, float]], variants: list[str], on_front: list[bool], xlabel: str,
