@@ -9,17 +9,15 @@ import pytest
 
 from ghsplat_jax.eval.metrics import image_metrics, summarize
 from ghsplat_jax.experiments.charts import (
-    label_box,
-    overlap,
     pareto_figure,
     pareto_front,
-    place_labels,
     scatter_figure,
     scatter_series,
     split_label,
     write_charts,
     write_pareto_charts,
 )
+from ghsplat_jax.experiments.labels import label_box, overlap, place_labels
 from ghsplat_jax.experiments.report import collect_runs, table1_markdown, write_results, write_table1
 from ghsplat_jax.experiments.runner import load_experiment
 from ghsplat_jax.train.config import ConfigError
