@@ -119,6 +119,9 @@ def test_ablation_judges_each_variant_against_the_seed_noise(ablation):
     assert f"More than 10% slower a step than the default: `{names[1]}` (3.00x, -1.00 dB)." in text
     assert f"Beyond the noise (0.57 dB) in PSNR: `{names[1]}` (-1.00 dB)." in text
     assert f"not told apart from the default by this single-seed run: `{names[2]}`." in text
+    assert "medians, at code not recorded;" in text  # a timing from before the revision was recorded
+    data["timing"]["code_revision"] = "0123456789abcdef+dirty"
+    assert "medians, at code `0123456+dirty`;" in ablation.render(data)
 
 
 def test_sfm_crosscheck_readme_is_generated():

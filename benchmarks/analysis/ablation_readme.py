@@ -55,6 +55,14 @@ def seed_noise(table1_rows: list[dict], scene: str) -> dict:
                    if r["scene"] == scene and r["split"] == "test" and is_seed(r["variant"])])
 
 
+def short_revision(record: dict) -> str:
+    """A record's code revision as the README prints it: `abc1234`, `abc1234+dirty` or not recorded."""
+    revision = record.get("code_revision")
+    if not revision:
+        return "not recorded"
+    return f"`{revision[:7]}{'+dirty' if revision.endswith('+dirty') else ''}`"
+
+
 def setting(overrides: dict) -> str:
     return ", ".join(f"`{k} = {json.dumps(v)}`" for k, v in overrides.items()) or "(the defaults)"
 
@@ -125,7 +133,8 @@ def render(data: dict) -> str:
                "choice ablated.")
     out.append("- Step times: " + (
         f"re-measured interleaved in one process from each run's final checkpoint "
-        f"({data['timing']['steps_timed']} steps each, medians; `step_timing.json`), beside the median each run "
+        f"({data['timing']['steps_timed']} steps each, medians, at code {short_revision(data['timing'])}; "
+        "`step_timing.json`), beside the median each run "
         "logged while it trained. The logged medians also count the early steps at reduced resolution and a "
         "smaller count, so a run that stopped early logs a lower median; the interleaved times are each run's "
         "step at its final count and full resolution, taken under one load, and are the ones to compare." if timed else

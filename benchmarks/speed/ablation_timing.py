@@ -26,7 +26,7 @@ from record import machine_record  # noqa: E402
 from speed.train_speed import time_steps  # noqa: E402
 
 from ghsplat_jax.experiments.charts import write_pareto_charts
-from ghsplat_jax.io_utils import write_json
+from ghsplat_jax.io_utils import code_revision, write_json
 from ghsplat_jax.train.config import load_config
 from ghsplat_jax.train.run_dir import CHECKPOINT_NAME, CONFIG_NAME, load_training_data
 
@@ -47,8 +47,8 @@ def main(argv=None) -> int:
     else:
         timing, steps = {scene: time_scene([r for r in rows if r["scene"] == scene], args.steps)
                          for scene in sorted({r["scene"] for r in rows})}, args.steps
-        write_json(args.results / "step_timing.json", {"machine": machine_record(), "steps_timed": steps,
-                                                       "split": args.split, "scenes": timing})
+        write_json(args.results / "step_timing.json", {"machine": machine_record(), "code_revision": code_revision(),
+                                                       "steps_timed": steps, "split": args.split, "scenes": timing})
     charted = [dict(r, interleaved_step_seconds=timing[r["scene"]][r["variant"]]["seconds_per_step"],
                     interleaved_cpu_seconds=timing[r["scene"]][r["variant"]]["cpu_seconds_per_step"])
                for r in rows if r["variant"] in timing.get(r["scene"], {})]
