@@ -120,7 +120,7 @@ def test_ablation_judges_each_variant_against_the_seed_noise(ablation):
     assert f"Beyond the noise (0.57 dB) in PSNR: `{names[1]}` (-1.00 dB)." in text
     assert f"not told apart from the default by this single-seed run: `{names[2]}`." in text
     assert "medians, at code not recorded;" in text  # a timing from before the revision was recorded
-    data["timing"]["code_revision"] = "0123456789abcdef+dirty"
+    data["timing"]["code_revision"] = "0123456789abcdef" * 2 + "01234567+dirty"  # code_revision(): 40 hex digits
     assert "medians, at code `0123456+dirty`;" in ablation.render(data)
 
 

@@ -27,6 +27,7 @@ from readme_check import text_diff, write_or_check  # noqa: E402
 from table1_readme import names, signed, table  # noqa: E402
 
 from ghsplat_jax.experiments.charts import pareto_front  # noqa: E402
+from ghsplat_jax.experiments.report import short_revision  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -34,6 +35,7 @@ EXPERIMENT = ROOT / "experiments" / "raster_ablation.toml"
 PRESET = "auto_cpu"
 SCRIPT = "benchmarks/analysis/ablation_readme.py"
 BASE = "default"
+SAME_SPEED = 0.10  # step times within this fraction of the default's are not told apart from it
 SAME_GRADIENTS = ("skip_chunks", "skip_none")  # the backward walks pairs that add zero: the same sums
 
 
@@ -55,12 +57,9 @@ def seed_noise(table1_rows: list[dict], scene: str) -> dict:
                    if r["scene"] == scene and r["split"] == "test" and is_seed(r["variant"])])
 
 
-def short_revision(record: dict) -> str:
-    """A record's code revision as the README prints it: `abc1234`, `abc1234+dirty` or not recorded."""
-    revision = record.get("code_revision")
-    if not revision:
-        return "not recorded"
-    return f"`{revision[:7]}{'+dirty' if revision.endswith('+dirty') else ''}`"
+def revision_named(revision: str | None) -> str:
+    """A code revision as the README prints it: `abc1234`, `abc1234+dirty` or not recorded."""
+    return f"`{short_revision(revision)}`" if revision else "not recorded"
 
 
 def setting(overrides: dict) -> str:
@@ -75,26 +74,27 @@ def verdict(delta: float, noise: float) -> str:
 
 def front_summary(by: dict, timed: dict, threshold: float) -> list[str]:
     """Which variants no other beats in interleaved step time and test PSNR together, which cost
-    more than 10% a step over the default, which differ from it by more than the noise, and which
-    it cannot be told from (step times within 10%, PSNR within the noise)."""
+    more than SAME_SPEED a step over the default, which differ from it by more than the noise, and
+    which it cannot be told from (step times within SAME_SPEED, PSNR within the noise)."""
     runs = [v for v in by if v in timed]
     step = {v: timed[v]["seconds_per_step"] for v in runs}
     gain = {v: by[v]["psnr"] - by[BASE]["psnr"] for v in runs}
     front = [v for v, f in zip(runs, pareto_front([(step[v], by[v]["psnr"]) for v in runs])) if f]
-    slower = sorted((v for v in runs if step[v] > 1.1 * step[BASE]), key=step.__getitem__)
+    slower = sorted((v for v in runs if step[v] > (1 + SAME_SPEED) * step[BASE]), key=step.__getitem__)
     beyond = [v for v in runs if v != BASE and abs(gain[v]) > threshold]
-    alike = [v for v in runs if v != BASE and v not in beyond and abs(step[v] / step[BASE] - 1) <= 0.1]
+    alike = [v for v in runs if v != BASE and v not in beyond and abs(step[v] / step[BASE] - 1) <= SAME_SPEED]
+    band = f"{SAME_SPEED:.0%}"
 
     def listed(xs: list[str]) -> str:
         return names(xs) if xs else "none"
 
     return ["## Speed against accuracy", "",
             f"- On the front of interleaved step time against test PSNR: {listed([f'`{v}`' for v in front])}.",
-            "- More than 10% slower a step than the default: " + listed(
+            f"- More than {band} slower a step than the default: " + listed(
                 [f"`{v}` ({step[v] / step[BASE]:.2f}x, {signed(gain[v], '.2f')} dB)" for v in slower]) + ".",
             f"- Beyond the noise ({threshold:.2f} dB) in PSNR: " + listed(
                 [f"`{v}` ({signed(gain[v], '.2f')} dB)" for v in beyond]) + ".",
-            "- Within 10% of the default's step time and within the PSNR noise, so not told apart from the default "
+            f"- Within {band} of the default's step time and within the PSNR noise, so not told apart from the default "
             "by this single-seed run: " + listed([f"`{v}`" for v in alike]) + "."]
 
 
@@ -107,7 +107,7 @@ def render(data: dict) -> str:
     noise = seed_noise(data["table1"], scene)
     threshold = 2 * math.sqrt(2) * noise["std"] if noise["n"] > 1 else None
     timed = (data["timing"] or {}).get("scenes", {}).get(scene, {})
-    revisions = sorted({(r.get("code_revision") or "")[:7] or "not recorded" for r in by.values()})
+    revisions = sorted({revision_named(r.get("code_revision")) for r in by.values()})
     hosts = sorted({r.get("host") or "a machine not recorded" for r in by.values()})
 
     prep, down = data["prepare"], scene_cfg.get("train", {}).get("downscale", 1.0)
@@ -117,8 +117,7 @@ def render(data: dict) -> str:
            "(self-sized, self-stopped), so a choice is judged by the PSNR, count and time of a whole run. Scene "
            f"{scene} at {size} (Table 1's size), seed 0 for every variant. Made by `ghsplat run "
            f"experiments/raster_ablation.toml --preset {PRESET}`; this README by `{SCRIPT}`.", "",
-           f"- Runs: {len(by)} of {len(variants)} variants, on {names(hosts)}, at code "
-           f"{names([f'`{r}`' for r in revisions])}."]
+           f"- Runs: {len(by)} of {len(variants)} variants, on {names(hosts)}, at code {names(revisions)}."]
     if threshold is not None:
         out.append(f"- Noise: the auto recipe's {noise['n']} seeds on {scene} (Table 1) score {noise['mean']:.2f} ± "
                    f"{noise['std']:.2f} dB. The difference of two single runs then has an sd of "
@@ -133,8 +132,8 @@ def render(data: dict) -> str:
                "choice ablated.")
     out.append("- Step times: " + (
         f"re-measured interleaved in one process from each run's final checkpoint "
-        f"({data['timing']['steps_timed']} steps each, medians, at code {short_revision(data['timing'])}; "
-        "`step_timing.json`), beside the median each run "
+        f"({data['timing']['steps_timed']} steps each, medians, at code "
+        f"{revision_named(data['timing'].get('code_revision'))}; `step_timing.json`), beside the median each run "
         "logged while it trained. The logged medians also count the early steps at reduced resolution and a "
         "smaller count, so a run that stopped early logs a lower median; the interleaved times are each run's "
         "step at its final count and full resolution, taken under one load, and are the ones to compare." if timed else

@@ -59,11 +59,16 @@ _FORMATS = {"l1": "{:.4f}", "psnr": "{:.2f}", "psnr_cc": "{:.2f}", "structure_ps
             "render_seconds_per_view": "{:.3f}"}
 
 
+def short_revision(revision: str) -> str:
+    """A code revision as a table names it: the sha's first 7 digits, "+dirty" kept."""
+    return revision[:7] + revision[40:]
+
+
 def _fmt(key: str, v) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
-    if key == "code_revision":  # a sha's first 7 digits name it in a table ("+dirty" kept)
-        return v[:7] + v[40:]
+    if key == "code_revision":
+        return short_revision(v)
     if key == "num_gaussians":
         v = int(v)
     return _FORMATS.get(key, "{}").format(v)
