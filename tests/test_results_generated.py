@@ -216,11 +216,38 @@ def test_compact_seeds_are_judged_against_the_default_by_their_spread(table1):
             row("s4", "compact_curve", 29.0), row("s4", "compact_seedx", 29.0),  # neither is a seed
             row("s5", "default", 28.0), row("s5", "compact", 29.0, None), row("s5", "compact_seed1", 29.0)]
     text = "\n".join(table1.compact_seeds_section(rows))
-    assert ("| s1 | 3 | 28.80 ± 0.10 | 28.00 | +0.80 ± 0.10 | +0.70 | yes | 30,000 ± 0 | 2,600 ± 0 | aaaaaaa, bbbbbbb |"
-            in text)
-    assert "| s2 | 2 | 28.20 ± 0.42 | 28.00 | +0.20 ± 0.42 | -0.10 | no |" in text
+    assert ("| s1 | 3 and 1 | 28.80 ± 0.10 | 28.00 | +0.80 ± 0.10 | +0.70 | yes | 30,000 ± 0 | 2,600 ± 0 | "
+            "aaaaaaa, bbbbbbb |" in text)
+    assert "| s2 | 2 and 1 | 28.20 ± 0.42 | 28.00 | +0.20 ± 0.42 | -0.10 | no |" in text
     assert "| s3 |" not in text and "| s4 |" not in text and "| aaaaaaa, 1 not recorded |" in text  # s5's
     assert table1.compact_seeds_section(rows[7:11]) == []
+
+    # With the default's own seeds: the difference of the means, both spreads combined, and the worst
+    # compact seed against the best default seed (a default seed still training is not one).
+    rows += [row("s6", "default", 28.0), row("s6", "default_seed1", 28.2), row("s6", "default_seed2", None),
+             row("s6", "compact", 28.9), row("s6", "compact_seed1", 29.1)]
+    text = "\n".join(table1.compact_seeds_section(rows))
+    assert "| s6 | 2 and 2 | 29.00 ± 0.14 | 28.10 ± 0.14 | +0.90 ± 0.20 | +0.70 | yes |" in text
+    rows[-4]["psnr"] = 28.95  # a default seed above a compact one: inside the spread
+    assert "| 28.48 ± 0.67 | +0.52 ± 0.69 | -0.05 | no |" in "\n".join(table1.compact_seeds_section(rows))
+
+
+def test_default_seeds_carry_the_metrics_the_protocol_rows_lack(table1):
+    """The default over seeds: only segments with two finished seeds, and a metric the seed-0 run
+    lacks is averaged over the seeds that record it, with their count named."""
+    def row(scene, variant, psnr, lpips=None):
+        return {"scene": scene, "variant": variant, "psnr": psnr, "ssim": 0.9, "lpips": lpips,
+                "depth_abs_err": None if lpips is None else 0.03, "normal_err_deg": None if lpips is None else 20.0,
+                "num_gaussians": 150000, "train_seconds": 7000.0, "code_revision": None if lpips is None else "c" * 40}
+
+    rows = [row("s1", "default", 28.6), row("s1", "default_seed1", 28.8, 0.15), row("s1", "default_seed2", 28.7, 0.17),
+            row("s2", "default", 28.0), row("s2", "default_seed1", None),  # still training
+            row("s3", "default_curve", 28.0, 0.2), row("s3", "default_seedx", 28.0, 0.2)]  # neither is a seed
+    text = "\n".join(table1.default_seeds_section(rows))
+    assert ("| s1 | 3 | 28.70 ± 0.10 | 0.900 ± 0.000 | 0.160 ± 0.014 (2 of 3 seeds) | 0.0300 ± 0.0000 (2 of 3 seeds) "
+            "| 20.0 ± 0.0 (2 of 3 seeds) | 150,000 ± 0 |" in text)
+    assert "| s2 |" not in text and "| s3 |" not in text and "Code revisions: ccccccc, 1 not recorded." in text
+    assert table1.default_seeds_section(rows[3:]) == []
 
 
 def test_table1_seed_table_times_one_kind_of_machine(table1):
