@@ -65,6 +65,39 @@ def test_plateau_rule_counts_no_check_made_at_reduced_resolution():
     assert a == "anneal" and s["annealed_at"] == 2750
 
 
+def test_plateau_rule_keeps_only_a_model_trained_under_the_late_loss():
+    """normal_settle: a run whose validation peaks before the normal prior starts (step 7,000) and
+    dips under it. Without keep_from the pre-prior model is kept and the run stops at 7,750; with
+    it, the best restarts at 8,000 (the anneal stays) and the kept model comes from then on."""
+    curve = [(5500, 28.0), (5750, 28.3), (6000, 28.35), (6250, 28.36), (6500, 28.37), (6750, 28.38),
+             (7000, 28.5), (7250, 28.3), (7500, 28.35), (7750, 28.4), (8000, 28.3), (8250, 28.42),
+             (8500, 28.45), (8750, 28.44), (9000, 28.46), (9250, 28.43)]
+
+    def run(rule):
+        s, actions = rule.initial(), {}
+        for step, psnr in curve:
+            s, actions[step] = rule.update(s, step, psnr)
+            if actions[step] == "stop":
+                break
+        return s, actions
+
+    s, actions = run(PlateauRule(patience=3, min_gain=0.1, stop_after=2000, anneal=0.3))
+    assert actions[6500] == "anneal" and s["stopped_at"] == 7750 and s["best_step"] == 7000
+    s, actions = run(PlateauRule(patience=3, min_gain=0.1, stop_after=2000, anneal=0.3, keep_from=8000))
+    assert actions[6500] == "anneal" and actions[7750] == "wait"  # a plateau before keep_from stops nothing
+    assert s["kept_from"] == 8000 and actions[8000] == "best" and s["lr_scale"] == 0.3
+    assert s["stopped_at"] == 9000 and s["best_step"] == 9000 and s["best_psnr"] == 28.46
+
+
+def test_normal_settle_sets_the_rule_only_where_the_normal_loss_acts():
+    cfg = TrainConfig().replace(recipe="auto", normal_settle=1000)
+    assert PlateauRule.from_config(cfg).keep_from == cfg.normal_from + 1000
+    for off in (dict(lambda_normal=0.0), dict(normal_from=cfg.steps), dict(normal_settle=0)):
+        assert PlateauRule.from_config(cfg.replace(**off)).keep_from == 0
+    with pytest.raises(ConfigError, match="normal_settle"):
+        TrainConfig(normal_settle=-1)
+
+
 def test_box_downscale_and_intrinsics_agree_on_where_a_point_lands():
     img = np.zeros((1, 24, 32, 3), np.float32)
     img[0, 8:12, 20:24] = 1.0  # a 4x4 block
@@ -388,16 +421,17 @@ def test_a_recipes_step_ceiling_does_not_scale_its_schedule(caplog):
     assert TrainConfig(scale_schedule=True, steps=8000).resolved().densify_every == 27  # no recipe: scaled
 
 
-@pytest.mark.parametrize("at_freeze", [False, True])
-def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_freeze):
+@pytest.mark.parametrize("at_freeze,normal_from", [(False, 0), (True, 0), (False, 120)])
+def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_freeze, normal_from):
     from ghsplat_jax.eval.evaluate import train_and_evaluate
     from ghsplat_jax.train.synthetic import cached_synthetic_dataset
 
     ds = cached_synthetic_dataset(num_views=20, width=32, height=24, num_surfels=40, test_every=5, num_points=200)
     cfg = TrainConfig().replace(recipe="auto", steps=400, val_every=10, stop_patience=2, stop_min_gain=0.5,
                                 stop_after=0, res_until=20, res_min_side=8, densify_from=5, densify_every=5,
-                                normal_from=0, lr_sh_dc=0.02, sh_degree=1, sh_increase_every=10, progress=False,
-                                checkpoint_every=1000, pair_capacity=16384)
+                                normal_from=normal_from, normal_settle=60 if normal_from else 0, lr_sh_dc=0.02,
+                                sh_degree=1, sh_increase_every=10, progress=False, checkpoint_every=1000,
+                                pair_capacity=16384)
     # min_gain_db 5: the first level judged freezes the count (a level in two checks, 20 steps).
     cfg = cfg.replace(**{"strategy.compact_at_freeze": at_freeze, "strategy.min_gain_db": 5.0,
                          "strategy.hold_checks": 2})
@@ -411,6 +445,10 @@ def test_a_tiny_auto_run_stops_by_itself_and_keeps_its_best_model(tmp_path, at_f
     assert max(checks) == stop["stopped_at"] and checks[stop["best_step"]]["val_psnr"] == stop["best_val_psnr"]
     assert stop["best_val_psnr"] == max(r["val_psnr"] for r in checks.values())
     assert stop["validation_views"] == [v.name for v in hold_out(ds.train, cfg.val_hold_every)[1]] != []
+    if normal_from:  # the same run with normal_from = 0 stops at step 100, before this one's normal loss starts
+        assert stop["kept_from"] == 180 <= stop["best_step"] and stop["stopped_at"] >= 180 + 2 * 10
+    else:
+        assert stop["kept_from"] is None
     # The first steps trained on half-size images: the schedule reached full size at step 20.
     assert (tmp_path / "run" / "point_cloud.ply").is_file() and math.isfinite(metrics["test"]["psnr"])
     assert metrics["num_gaussians"] > 0 and metrics["recipe"] == "auto" and metrics["strategy"] == "auto"

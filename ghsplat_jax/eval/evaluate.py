@@ -320,13 +320,14 @@ def train_and_evaluate(config, out_dir, resume: bool = False, dataset=None, eval
 
 def stop_summary(rule: dict, steps: int, max_steps: int, held_out: list[str] | None = None) -> dict:
     """What metrics.json says of a run with validation: why and when it stopped, the step whose
-    model it kept, and the views its checks held out (`held_out`; [] when they read the training
+    model it kept (`kept_from`: the first check that could be kept, where normal_settle sets one), and
+    the views its checks held out (`held_out`; [] when they read the training
     views, as they do where too few train to spare some)."""
     stopped = rule.get("stopped_at") is not None
     return {"reason": rule["reason"] if stopped else f"the schedule ended at step {max_steps}",
             "stopped_at": int(rule["stopped_at"]) if stopped else int(steps), "best_step": int(rule["best_step"]),
             "best_val_psnr": rule["best_psnr"], "annealed_at": rule.get("annealed_at"),
-            "validation_views": held_out}
+            "kept_from": rule.get("kept_from"), "validation_views": held_out}
 
 
 _evaluate = evaluate  # train_and_evaluate's `evaluate` flag shadows the function's name

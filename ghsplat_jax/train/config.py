@@ -126,6 +126,8 @@ class TrainConfig:
     stop_patience: int = 0              # 0: never stop before `steps`
     stop_min_gain: float = 0.05         # dB over the best validation PSNR so far
     stop_after: int = 0                 # no stop before this step
+    normal_settle: int = 0              # > 0: the model kept has had the normal loss this many steps (no check
+                                        # before normal_from + normal_settle is kept, nor stops the run); 0: any
     lr_anneal: float = 0.3
 
     # --- resolution schedule ----------------------------------------------------------------
@@ -229,9 +231,11 @@ class TrainConfig:
             raise ConfigError(f"strategy {self.strategy.name!r}: {exc}") from None
         if self.recipe and self.recipe not in RECIPES:
             raise ConfigError(f"recipe must be one of {('',) + tuple(RECIPES)}, got {self.recipe!r}")
-        if self.val_every < 0 or self.val_hold_every < 2 or self.stop_patience < 0 or self.stop_after < 0:
-            raise ConfigError("val_every, stop_patience and stop_after must be >= 0 and val_hold_every >= 2, got "
-                              f"{self.val_every}, {self.stop_patience}, {self.stop_after}, {self.val_hold_every}")
+        if (self.val_every < 0 or self.val_hold_every < 2 or self.stop_patience < 0 or self.stop_after < 0
+                or self.normal_settle < 0):
+            raise ConfigError("val_every, stop_patience, stop_after and normal_settle must be >= 0 and val_hold_every "
+                              f">= 2, got {self.val_every}, {self.stop_patience}, {self.stop_after}, "
+                              f"{self.normal_settle}, {self.val_hold_every}")
         if self.stop_patience and not self.val_every:
             raise ConfigError("stop_patience needs validation checks: set val_every > 0")
         if not 0 < self.lr_anneal <= 1:
@@ -297,7 +301,8 @@ class TrainConfig:
         return dataclasses.replace(
             self, scale_schedule=False, sh_increase_every=s(self.sh_increase_every),
             lr_means_steps=s(self.lr_means_steps) if self.lr_means_steps else 0,
-            dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), densify_from=s(self.densify_from, 0),
+            dist_from=s(self.dist_from, 0), normal_from=s(self.normal_from, 0), normal_settle=s(self.normal_settle, 0),
+            densify_from=s(self.densify_from, 0),
             densify_until=s(self.densify_until), densify_every=s(self.densify_every, 10),
             opacity_reset_every=s(self.opacity_reset_every, 100), res_until=s(self.res_until, 0),
             pose_refine_from=s(self.pose_refine_from, 0), exposure_from=s(self.exposure_from, 0),

@@ -13,7 +13,9 @@ override (a recipe's table, then the config file, then the command line).
   2DGS's start (step 7,000), which a run that stops itself often does not reach: from step 2,000
   it cost 1.38 dB of test PSNR on row2_x1 (28.01 against 29.39) for better normals (20 against 34
   degrees mean error; median depth error 3.1 against 4.1 cm). Where geometry comes first (depth
-  or LiDAR renders), set normal_from = 2000.
+  or LiDAR renders), set normal_from = 2000. Since the run keeps its best check, whether that model
+  had the loss at all is chance (most runs plateau within 1,000 steps of step 7,000): normal_settle
+  = N keeps only a model that has had it N steps (experiments/table1_greenhouse.toml: auto_settle).
 """
 
 from __future__ import annotations
