@@ -289,3 +289,32 @@ def test_ablation_timing_redraws_its_charts_from_the_times_on_record(tmp_path):
     table = (tmp_path / "step_timing.md").read_text()
     assert all(f"| {v} |" in table for vs in timed.values() for v in vs)
     assert (tmp_path / "step_timing.json").read_bytes() == (folder / "step_timing.json").read_bytes()
+
+
+def test_ablation_timing_pools_its_passes_and_the_readme_shows_each_pass():
+    """--passes: each variant's median over every pass's steps, each pass's own median kept, and
+    the README's last column the ratio to the default in each pass."""
+    timing = _module("benchmarks/speed/ablation_timing.py")
+    facts = {"step": 8000, "surfels": 20000, "pool": 32768, "pair_capacity": 1 << 20}
+
+    def row(wall):  # a pass's row as time_sessions makes it: samples of (wall, CPU, pairs, faults)
+        return facts | {"seconds_per_step": wall, "samples": [[wall, 2 * wall, 1e5, 0.0]] * 3}
+
+    pooled = timing.pooled_passes([{"default": row(0.10), "tile32": row(0.30)},
+                                   {"default": row(0.12), "tile32": row(0.33)}])
+    assert pooled["tile32"]["pass_seconds_per_step"] == [0.30, 0.33] and len(pooled["tile32"]["samples"]) == 6
+    assert pooled["default"]["seconds_per_step"] == pytest.approx(0.11)  # the median of all six steps
+    assert pooled["default"]["cpu_seconds_per_step"] == pytest.approx(0.22) and pooled["default"]["step"] == 8000
+
+    ablation = _module("benchmarks/analysis/ablation_readme.py")
+    data = ablation.load()
+    scene = data["preset"]["scenes"][0]["name"]
+    assert "each pass" not in ablation.render(data)  # the committed timing has one pass
+    timed = data["timing"]["scenes"][scene]
+    timed["default"] |= {"pass_seconds_per_step": [0.10, 0.12]}
+    timed["tile32"] |= {"pass_seconds_per_step": [0.30, 0.33]}
+    data["timing"]["passes"] = 2
+    lines = ablation.render(data).splitlines()
+    head = next(line for line in lines if line.startswith("| variant |"))
+    assert head.rstrip().endswith("| vs default, each pass |") and "in each of 2 passes" in "\n".join(lines)
+    assert next(line for line in lines if line.startswith("| tile32 |")).rstrip().endswith("| 3.00x, 2.75x |")

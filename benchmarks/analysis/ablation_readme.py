@@ -72,6 +72,14 @@ def verdict(delta: float, noise: float) -> str:
     return "better" if delta > 0 else "worse"
 
 
+def pass_ratios(timed: dict, name: str) -> list[float] | None:
+    """A variant's step time over the default's in each timing pass (None without two passes of both)."""
+    mine, base = timed.get(name, {}).get("pass_seconds_per_step"), timed.get(BASE, {}).get("pass_seconds_per_step")
+    if not mine or not base or len(mine) != len(base) or len(mine) < 2:
+        return None
+    return [a / b for a, b in zip(mine, base)]
+
+
 def front_summary(by: dict, timed: dict, threshold: float) -> list[str]:
     """Which variants no other beats in interleaved step time and test PSNR together, which cost
     more than SAME_SPEED a step over the default, which differ from it by more than the noise, and
@@ -107,6 +115,7 @@ def render(data: dict) -> str:
     noise = seed_noise(data["table1"], scene)
     threshold = 2 * math.sqrt(2) * noise["std"] if noise["n"] > 1 else None
     timed = (data["timing"] or {}).get("scenes", {}).get(scene, {})
+    passes = (data["timing"] or {}).get("passes", 1)
     revisions = sorted({revision_named(r.get("code_revision")) for r in by.values()})
     hosts = sorted({r.get("host") or "a machine not recorded" for r in by.values()})
 
@@ -132,7 +141,10 @@ def render(data: dict) -> str:
                "choice ablated.")
     out.append("- Step times: " + (
         f"re-measured interleaved in one process from each run's final checkpoint "
-        f"({data['timing']['steps_timed']} steps each, medians, at code "
+        f"({data['timing']['steps_timed']} steps each"
+        + (f" in each of {passes} passes over the same compiled steps, medians over all of them and, in the last "
+           "column, each pass's own" if passes > 1 else ", medians")
+        + ", at code "
         f"{revision_named(data['timing'].get('code_revision'))}; `step_timing.json`), beside the median each run "
         "logged while it trained. The logged medians also count the early steps at reduced resolution and a "
         "smaller count, so a run that stopped early logs a lower median; the interleaved times are each run's "
@@ -145,7 +157,7 @@ def render(data: dict) -> str:
              "depth err (m)", "normal err (deg)", "normal-prior steps", "Gaussians", "steps", "train s",
              "logged step s"]
     if timed:
-        heads += ["interleaved step s", "vs default"]
+        heads += ["interleaved step s", "vs default"] + (["vs default, each pass"] if passes > 1 else [])
     body = []
     for name, overrides in variants.items():
         r = by.get(name)
@@ -162,6 +174,9 @@ def render(data: dict) -> str:
             step = timed.get(name, {}).get("seconds_per_step")
             ratio = step / timed[BASE]["seconds_per_step"] if step and BASE in timed and name != BASE else None
             cells += [fmt(step, ".3f"), "" if ratio is None else f"{ratio:.2f}x"]
+            if passes > 1:
+                each = pass_ratios(timed, name)
+                cells.append(", ".join(f"{x:.2f}x" for x in each) if each and name != BASE else "")
         body.append(cells)
     out += table(heads, body) + [""]
     if base and BASE in timed and threshold is not None:

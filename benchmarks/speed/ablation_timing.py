@@ -1,11 +1,14 @@
 """Re-time an experiment's variants in one process, interleaved, and redraw its Pareto charts.
 
-    python benchmarks/speed/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 32]
+    python benchmarks/speed/ablation_timing.py benchmarks/results/raster_ablation/quick [--steps 32] [--passes 2]
 
 `ghsplat run` records each run's median step time as it trained, so runs trained at different
 times (or beside other jobs) carry different machine loads. Here every variant's training step is
 timed from the run's own final checkpoint (its own surfels, settings and pair buffer), one step of
 each variant in turn, so drifting load hits them alike; medians of wall and process CPU time.
+With --passes N the interleaved timing runs N times over the same compiled steps: each variant's
+median is over every pass's steps, and each pass's own median is kept (`pass_seconds_per_step`),
+so the spread between passes is on record.
 Writes RESULTS/step_timing.json and, with these times as the cost, pareto_interleaved.json and
 pareto_interleaved_SCENE.png beside the experiment's own charts.
 """
@@ -23,7 +26,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: record.py and the other kinds' scripts
 from record import machine_record  # noqa: E402
-from speed.train_speed import time_steps  # noqa: E402
+from speed.train_speed import compiled_session, step_row, time_sessions  # noqa: E402
 
 from ghsplat_jax.experiments.charts import write_pareto_charts
 from ghsplat_jax.io_utils import code_revision, write_json
@@ -36,6 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument("results", type=Path, help="an experiment's results folder (with results.json)")
     ap.add_argument("--steps", type=int, default=32,  # 8 steps' medians moved by up to a fifth between passes
                     help="timed steps per variant")
+    ap.add_argument("--passes", type=int, default=2, help="interleaved timings of the same compiled steps")
     ap.add_argument("--split", default="test", help="whose PSNR the charts show")
     ap.add_argument("--redraw", action="store_true",
                     help="time nothing: redraw the charts and table from RESULTS/step_timing.json")
@@ -45,10 +49,13 @@ def main(argv=None) -> int:
         recorded = json.loads((args.results / "step_timing.json").read_text())
         timing, steps = recorded["scenes"], recorded["steps_timed"]
     else:
-        timing, steps = {scene: time_scene([r for r in rows if r["scene"] == scene], args.steps)
+        if args.steps < 1 or args.passes < 1:
+            ap.error(f"--steps and --passes must be >= 1, got {args.steps} and {args.passes}")
+        timing, steps = {scene: time_scene([r for r in rows if r["scene"] == scene], args.steps, args.passes)
                          for scene in sorted({r["scene"] for r in rows})}, args.steps
         write_json(args.results / "step_timing.json", {"machine": machine_record(), "code_revision": code_revision(),
-                                                       "steps_timed": steps, "split": args.split, "scenes": timing})
+                                                       "steps_timed": steps, "passes": args.passes,
+                                                       "split": args.split, "scenes": timing})
     charted = [dict(r, interleaved_step_seconds=timing[r["scene"]][r["variant"]]["seconds_per_step"],
                     interleaved_cpu_seconds=timing[r["scene"]][r["variant"]]["cpu_seconds_per_step"])
                for r in rows if r["variant"] in timing.get(r["scene"], {})]
@@ -60,13 +67,25 @@ def main(argv=None) -> int:
     return 0
 
 
-def time_scene(rows: list[dict], steps: int) -> dict:
-    """{variant: step timing} of one scene's runs that kept a checkpoint, interleaved (time_steps)."""
+def time_scene(rows: list[dict], steps: int, passes: int = 1) -> dict:
+    """{variant: step timing} of one scene's runs that kept a checkpoint, interleaved
+    (time_sessions), `passes` times over the same compiled sessions (pooled_passes)."""
     runs = {r["variant"]: r for r in rows if (Path(r["run_dir"]) / CHECKPOINT_NAME).is_file()}
     configs = {v: dataclasses.replace(load_config(Path(r["run_dir"]) / CONFIG_NAME), progress=False,
                                       checkpoint_every=0) for v, r in runs.items()}
     dataset = load_training_data(next(iter(configs.values())))  # the variants share the scene's data
-    return time_steps(configs, dataset, {v: Path(r["run_dir"]) / CHECKPOINT_NAME for v, r in runs.items()}, steps)
+    sessions = {v: compiled_session(cfg, dataset, Path(runs[v]["run_dir"]) / CHECKPOINT_NAME)
+                for v, cfg in configs.items()}
+    return pooled_passes([time_sessions(sessions, steps) for _ in range(passes)])
+
+
+def pooled_passes(passes: list[dict]) -> dict:
+    """{variant: row} over the passes' rows ({variant: row} each, with raw samples): the medians over
+    every pass's steps, the first pass's facts, and each pass's own median step time."""
+    return {v: step_row({k: x for k, x in first.items() if k in ("step", "surfels", "pool", "pair_capacity")},
+                        [s for p in passes for s in p[v]["samples"]])
+            | {"pass_seconds_per_step": [p[v]["seconds_per_step"] for p in passes]}
+            for v, first in passes[0].items()}
 
 
 def write_markdown(path: Path, rows: list[dict], steps: int) -> None:

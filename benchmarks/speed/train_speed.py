@@ -163,14 +163,15 @@ def time_sessions(sessions: dict, steps: int, within=lambda name: contextlib.nul
                                   _minor_faults() - f0))
     rows = {}
     for name, session in sessions.items():
-        rows[name] = _row(dict(step=starts[name], surfels=int(jnp.sum(session.state.active)),
+        rows[name] = step_row(dict(step=starts[name], surfels=int(jnp.sum(session.state.active)),
                                pool=session.state.capacity, pair_capacity=session.pair_capacity),
                           [list(map(float, sample)) for sample in samples[name]])
         print(name, rows[name], flush=True)
     return rows
 
 
-def _row(facts: dict, samples: list) -> dict:
+def step_row(facts: dict, samples: list) -> dict:
+    """`facts` and the medians of the timed steps' samples (wall s, CPU s, candidate pairs, page faults)."""
     wall, cpu, pairs, faults = (np.array(v) for v in zip(*samples))
     return facts | dict(candidate_pairs=float(np.median(pairs)), seconds_per_step=float(np.median(wall)),
                         cpu_seconds_per_step=float(np.median(cpu)), page_faults_per_step=int(np.median(faults)),
@@ -197,7 +198,7 @@ def time_children(args, variants: dict, rounds: int = 2) -> dict:
             samples[name] += row.pop("samples")
             facts[name] = {k: row[k] for k in ("step", "surfels", "pool", "pair_capacity")} | dict(
                 peak_rss_mb=max(row["peak_rss_mb"], facts.get(name, {}).get("peak_rss_mb", 0.0)))
-    return {name: _row(facts[name], samples[name]) for name in samples}
+    return {name: step_row(facts[name], samples[name]) for name in samples}
 
 
 def time_policies(args) -> dict:
