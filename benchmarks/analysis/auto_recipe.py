@@ -4,6 +4,7 @@ time, per scene, from the runs' own records (every number below is read from fil
     python benchmarks/analysis/auto_recipe.py --runs runs/table1_greenhouse \
         --reference benchmarks/results/table1_greenhouse/results.json --out benchmarks/results/auto_recipe
     python benchmarks/analysis/auto_recipe.py --check    # OUT/README.md against OUT/results.json
+    python benchmarks/analysis/auto_recipe.py --readme-only    # OUT/README.md again from OUT/results.json
 
 Reads every RUNS/SCENE/VARIANT folder whose variant starts with "auto" (metrics.json, config.toml,
 test_curve.jsonl: the test views scored while training, that time left out of the training seconds)
@@ -243,9 +244,10 @@ def seeded_ablations(runs: list[dict]) -> list[dict]:
         if len(rs) < 2 or not recipe:
             continue
         out.append({"scene": scene, "variant": name, "seeds": len(rs), "recipe_seeds": len(recipe)}
-                   | {k: spread([r.get(k) for r in rs]) for k in ("psnr", "lpips", "num_gaussians", "train_seconds")}
-                   | {f"recipe_{k}": spread([r.get(k) for r in recipe]) for k in ("psnr", "num_gaussians",
-                                                                                   "train_seconds")})
+                   | {k: spread([r.get(k) for r in rs]) for k in ("psnr", "lpips", "normal_err_deg", "num_gaussians",
+                                                                  "train_seconds")}
+                   | {f"recipe_{k}": spread([r.get(k) for r in recipe]) for k in ("psnr", "normal_err_deg",
+                                                                                   "num_gaussians", "train_seconds")})
     return out
 
 
@@ -487,12 +489,13 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     seeded = seeded_ablations(runs)
     if seeded:
         lines += ["", "## Ablations over seeds (mean ± sample std; the same scene's recipe seeds beside them)", "",
-                  "| scene | variant | seeds | test PSNR | recipe's PSNR (seeds) | change (dB) | LPIPS | surfels | "
-                  "recipe's surfels | train s | recipe's train s |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| scene | variant | seeds | test PSNR | recipe's PSNR (seeds) | change (dB) | LPIPS | normal err "
+                  "(deg) | recipe's normal err | surfels | recipe's surfels | train s | recipe's train s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {a['scene']} | {a['variant']} | {a['seeds']} | {fmt_spread(a['psnr'])} | "
                   f"{fmt_spread(a['recipe_psnr'])} ({a['recipe_seeds']}) | "
                   f"{a['psnr']['mean'] - a['recipe_psnr']['mean']:+.2f} | {fmt_spread(a['lpips'], '.3f')} | "
+                  f"{fmt_spread(a['normal_err_deg'], '.1f')} | {fmt_spread(a['recipe_normal_err_deg'], '.1f')} | "
                   f"{fmt_spread(a['num_gaussians'], ',.0f')} | {fmt_spread(a['recipe_num_gaussians'], ',.0f')} | "
                   f"{fmt_spread(a['train_seconds'], '.0f')} | {fmt_spread(a['recipe_train_seconds'], '.0f')} |"
                   for a in seeded]
@@ -550,9 +553,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS / "auto_recipe")
     ap.add_argument("--check", action="store_true",
                     help="write nothing: exit 1 with a diff if OUT/README.md differs from OUT/results.json's")
+    ap.add_argument("--readme-only", action="store_true",
+                    help="rewrite OUT/README.md from the committed OUT/results.json (no run folders), after a change "
+                         "to what the README shows")
     args = ap.parse_args(argv)
     if args.check:
         return report(args.out / "README.md", check(args.out), "what auto_recipe.py renders from results.json")
+    if args.readme_only:
+        with atomic_write(args.out / "README.md", "w") as fh:
+            fh.write(readme_from_results(args.out))
+        print(f"wrote {args.out}/README.md")
+        return 0
     sys.path.insert(0, str(ROOT / "benchmarks"))  # record.py
     from record import machine_record
 
