@@ -479,11 +479,14 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
     if ablated:
         lines += ["", "## Ablations (each against the same scene's seed-0 run of the recipe, or of its previous "
                   "version, whichever it differs from in fewer settings)", "",
-                  "| scene | variant | against | differs in | test PSNR | change (dB) | surfels | count x | train s | "
-                  "change (s) | same code |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| scene | variant | against | differs in | test PSNR | change (dB) | normal err (deg) | against's "
+                  "normal err | surfels | count x | train s | change (s) | same code |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        by = {(r["scene"], r["variant"]): r for r in runs}
+        normal = lambda scene, variant: fmt(by.get((scene, variant), {}).get("normal_err_deg"), ".1f")  # noqa: E731
         lines += [f"| {a['scene']} | {a['variant']} | {a.get('against', 'auto')} | "
                   f"{', '.join(a.get('differs_in') or []) or '-'} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
+                  f"{normal(a['scene'], a['variant'])} | {normal(a['scene'], a.get('against', 'auto'))} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
     seeded = seeded_ablations(runs)
