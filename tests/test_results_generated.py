@@ -318,3 +318,19 @@ def test_ablation_timing_pools_its_passes_and_the_readme_shows_each_pass():
     head = next(line for line in lines if line.startswith("| variant |"))
     assert head.rstrip().endswith("| vs default, each pass |") and "in each of 2 passes" in "\n".join(lines)
     assert next(line for line in lines if line.startswith("| tile32 |")).rstrip().endswith("| 3.00x, 2.75x |")
+
+
+def test_auto_recipe_groups_geometry_by_the_kept_models_normal_prior_steps(auto_recipe):
+    """The kept model's prior steps: its best check past normal_from (0 before it, or with the loss
+    off); runs without a geometry error or a record of the settings are left out."""
+    def run(best, normal_err, normal_from=7000, lam=0.05, scene="a"):
+        return {"scene": scene, "best_step": best, "normal_err_deg": normal_err, "depth_abs_err": 0.04,
+                "settings": {"normal_from": normal_from, "lambda_normal": lam}}
+
+    runs = [run(6500, 34.0), run(7000, 32.0, scene="b"), run(7250, 24.0), run(8500, 19.0), run(9000, 30.0, lam=0.0),
+            run(8000, None), {"scene": "a", "best_step": 8000, "normal_err_deg": 20.0}]
+    assert [auto_recipe.prior_steps(r) for r in runs[:5]] == [0, 0, 250, 1500, 0]
+    text = "\n".join(auto_recipe.prior_section(runs))
+    assert "| 0 | 3 | 2 | 32.0 ± 2.0 | 30.0-34.0 |" in text and "| 1-500 | 1 | 1 | 24.0 ± 0.0 |" in text
+    assert "| over 1,000 | 1 | 1 | 19.0 ± 0.0 | 19.0-19.0 |" in text and "501-1,000" not in text
+    assert auto_recipe.prior_section(runs[5:]) == []

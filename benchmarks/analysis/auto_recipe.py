@@ -251,6 +251,43 @@ def seeded_ablations(runs: list[dict]) -> list[dict]:
     return out
 
 
+PRIOR_BINS = ((0, 0), (1, 500), (501, 1000), (1001, None))  # normal-prior steps of the kept model
+
+
+def prior_steps(run: dict) -> int | None:
+    """How many steps of the normal-consistency loss the run's kept model trained with (its best
+    check's step past `normal_from`; 0 with the loss off); None where its record does not say."""
+    settings = run.get("settings") or {}
+    if run.get("best_step") is None or settings.get("normal_from") is None or settings.get("lambda_normal") is None:
+        return None
+    return max(0, run["best_step"] - settings["normal_from"]) if settings["lambda_normal"] > 0 else 0
+
+
+def prior_section(runs: list[dict]) -> list[str]:
+    """The runs' geometry errors grouped by the normal-prior steps of the model each kept: a run keeps
+    its best check, so whether that model had the prior at all depends on when it plateaued."""
+    rows = [(prior_steps(r), r) for r in runs if r.get("normal_err_deg") is not None]
+    rows = [(n, r) for n, r in rows if n is not None]
+    if not rows:
+        return []
+    body = []
+    for lo, hi in PRIOR_BINS:
+        rs = [r for n, r in rows if n >= lo and (hi is None or n <= hi)]
+        if rs:
+            normal = spread([r["normal_err_deg"] for r in rs])
+            body.append(f"| {lo:,} | " if lo == hi else f"| {lo:,}-{hi:,} | " if hi else f"| over {lo - 1:,} | ")
+            body[-1] += (f"{len(rs)} | {len({r['scene'] for r in rs})} | {fmt_spread(normal, '.1f')} | "
+                         f"{normal['min']:.1f}-{normal['max']:.1f} | "
+                         f"{fmt_spread(spread([r.get('depth_abs_err') for r in rs]), '.4f')} |")
+    return ["", "## Geometry against the normal prior's steps in the kept model", "",
+            "Every run with geometry errors, grouped by how many steps of the normal-consistency loss the model it "
+            "kept had trained with (its best check's step past `normal_from`). A run keeps its best validation "
+            "check, so a run that plateaus before the loss starts, or whose checks under it never beat the last "
+            "one before it, keeps a model without it (`normal_settle` keeps only a model with that many steps).", "",
+            "| normal-prior steps | runs | scenes | normal err (deg) | range | depth err (m) |",
+            "|---|---|---|---|---|---|"] + body
+
+
 def main_machine(runs: list[dict]) -> str:
     """The report's main kind of machine: the one most of its recipe seeds trained on. Every
     table and chart times the runs of that kind, or a scene's own where it has none there."""
@@ -502,6 +539,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   f"{fmt_spread(a['num_gaussians'], ',.0f')} | {fmt_spread(a['recipe_num_gaussians'], ',.0f')} | "
                   f"{fmt_spread(a['train_seconds'], '.0f')} | {fmt_spread(a['recipe_train_seconds'], '.0f')} |"
                   for a in seeded]
+    lines += prior_section(runs)
     cc = any(r.get("psnr_cc") is not None for r in runs)  # the metric is newer than some runs
     heads = ["scene", "variant", "seed", "test PSNR"] + ["colour-corrected PSNR"] * cc + [
         "L1", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)", "train PSNR", "surfels", "train s", "steps",
