@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: auto_recipe.py
-from auto_recipe import is_seed, spread  # noqa: E402
+from auto_recipe import is_seed, prior_steps, spread  # noqa: E402
 from readme_check import text_diff, write_or_check  # noqa: E402
 
 from ghsplat_jax.io_utils import one_machine  # noqa: E402
@@ -52,6 +52,7 @@ def load(results: Path = RESULTS) -> dict:
         "results": read(folder / "results.json"),
         "real": read(real) if (real := results / "auto_recipe" / "real" / "results.json").is_file() else None,
         "full_size": read(f) if (f := results / "auto_recipe" / "table1_384" / "results.json").is_file() else None,
+        "auto": read(f) if (f := results / "auto_recipe" / "results.json").is_file() else None,
         "segments": read(folder / "segments.json"),
         "notes": read(folder / "notes.json"),
         "pareto": read(folder / "pareto.json"),
@@ -188,18 +189,31 @@ def default_seeds_section(rows: list[dict]) -> list[str]:
         runs, "segment") + [""]
 
 
-def auto_section(rows: list[dict]) -> list[str]:
+def prior_note(auto: dict | None, readme: str) -> str:
+    """How many of the recipe's seeds in an auto_recipe results.json kept a model that never trained
+    under the normal prior, and where the README groups the geometry by it ('' without records)."""
+    seeds = [r for r in finished_seeds((auto or {}).get("runs", [])) if r.get("normal_err_deg") is not None]
+    steps = [prior_steps(r) for r in seeds]
+    if not seeds or None in steps:
+        return ""
+    share = f"All {len(seeds)}" if steps.count(0) == len(seeds) else f"{steps.count(0)} of the {len(seeds)}"
+    return (f" {share} runs kept a model from before the normal-consistency loss "
+            "started (their best validation check came before it), so their normal errors are those of a model "
+            f"without it: [{readme}]({readme}#geometry-against-the-normal-priors-steps-in-the-kept-model).")
+
+
+def auto_section(rows: list[dict], auto: dict | None = None) -> list[str]:
     """The auto recipe's rows, per segment: mean ± sd over its seeds of the test metrics."""
-    auto = finished_seeds(rows)
-    if not auto:
+    auto_rows = finished_seeds(rows)
+    if not auto_rows:
         return []
     return ["## The auto recipe (self-sizing, self-stopping)", "",
             "`recipe = \"auto\"` on the same segments at the same size, one row per segment over the seeds that "
             "finished (mean ± sample sd); LPIPS (VGG), median depth error and mean normal error on the test views, "
             "the geometry against the procedural scene's ray-cast depth and normals (the model carried into the "
             "scene's frame by its SfM's similarity onto the exact cameras, so the SfM's pose error is in them). "
-            "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md).",
-            ""] + seed_table(auto, "segment") + [""]
+            "Curves, ablations and the equal-time comparison: [../auto_recipe/README.md](../auto_recipe/README.md)."
+            + prior_note(auto, "../auto_recipe/README.md"), ""] + seed_table(auto_rows, "segment") + [""]
 
 
 def full_size_section(full: dict | None) -> list[str]:
@@ -212,8 +226,8 @@ def full_size_section(full: dict | None) -> list[str]:
             "(`ghsplat run experiments/table1_greenhouse.toml --preset auto_384`). No default or compact rows: each "
             "would need a default run at 384x288 first, hours a segment on this CPU. One row per segment with a "
             "finished run; mean ± sample sd over the seeds that finished; per-run rows and curves: "
-            "[../auto_recipe/table1_384/README.md](../auto_recipe/table1_384/README.md).", ""] + seed_table(
-        runs, "segment") + [""]
+            "[../auto_recipe/table1_384/README.md](../auto_recipe/table1_384/README.md)."
+            + prior_note(full, "../auto_recipe/table1_384/README.md"), ""] + seed_table(runs, "segment") + [""]
 
 
 def real_section(real: dict | None) -> list[str]:
@@ -570,7 +584,7 @@ def render(data: dict) -> str:
 
     out += default_seeds_section(rows)
     out += compact_seeds_section(rows)
-    out += auto_section(rows)
+    out += auto_section(rows, data.get("auto"))
     out += full_size_section(data.get("full_size"))
     out += real_section(data.get("real"))
 
