@@ -232,16 +232,17 @@ def ablation_of(variant: str) -> str:
 
 
 def seeded_ablations(runs: list[dict]) -> list[dict]:
-    """Each ablation run with more than one seed ("auto_X", "auto_X_seedN"): the mean and spread
-    over its seeds beside the same scene's recipe seeds'."""
+    """Each ablation with more than one seed on a scene ("auto_X", "auto_X_seedN") or run on more than
+    one scene: per scene, the mean and spread over its seeds beside the same scene's recipe seeds'."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in runs:
         if not is_seed(r["variant"]):
             groups.setdefault((r["scene"], ablation_of(r["variant"])), []).append(r)
+    spans = {name: sum(n == name for _, n in groups) for _, name in groups}
     out = []
-    for (scene, name), rs in sorted(groups.items()):
+    for (scene, name), rs in sorted(groups.items(), key=lambda g: (g[0][1], g[0][0])):
         recipe = [r for r in runs if r["scene"] == scene and is_seed(r["variant"])]
-        if len(rs) < 2 or not recipe:
+        if (len(rs) < 2 and spans[name] < 2) or not recipe:
             continue
         out.append({"scene": scene, "variant": name, "seeds": len(rs), "recipe_seeds": len(recipe)}
                    | {k: spread([r.get(k) for r in rs]) for k in ("psnr", "lpips", "normal_err_deg", "num_gaussians",
@@ -406,8 +407,10 @@ def fmt(x, spec=".2f", none="-"):
 
 
 def fmt_spread(x: dict, spec: str = ".2f") -> str:
-    """A spread() as "mean ± std" ("-" when it has no values)."""
-    return f"{x['mean']:{spec}} ± {x['std']:{spec}}" if x["n"] else "-"
+    """A spread() as "mean ± std" ("-" when it has no values; one value: no spread)."""
+    if not x["n"]:
+        return "-"
+    return f"{x['mean']:{spec}}" if x["n"] == 1 else f"{x['mean']:{spec}} ± {x['std']:{spec}}"
 
 
 def surfels_cell(r: dict) -> str:
@@ -528,7 +531,8 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
     seeded = seeded_ablations(runs)
     if seeded:
-        lines += ["", "## Ablations over seeds (mean ± sample std; the same scene's recipe seeds beside them)", "",
+        lines += ["", "## Ablations over seeds or segments (mean ± sample std; the same scene's recipe seeds beside "
+                  "them)", "",
                   "| scene | variant | seeds | test PSNR | recipe's PSNR (seeds) | change (dB) | LPIPS | normal err "
                   "(deg) | recipe's normal err | surfels | recipe's surfels | train s | recipe's train s |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
