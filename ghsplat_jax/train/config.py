@@ -127,7 +127,7 @@ class TrainConfig:
     stop_min_gain: float = 0.05         # dB over the best validation PSNR so far
     stop_after: int = 0                 # no stop before this step
     normal_settle: int = 0              # > 0: the model kept has had the normal loss this many steps (no check
-                                        # before normal_from + normal_settle is kept, nor stops the run); 0: any
+                                        # before normal_from + normal_settle is kept or stops the run); 0: off
     lr_anneal: float = 0.3
 
     # --- resolution schedule ----------------------------------------------------------------
