@@ -374,8 +374,8 @@ def render(data: dict) -> str:
                + (f" The training-view PSNR of {names(missing_train)} is not recorded: its run folders are gone "
                   "and no progress record carries its final evaluation." if missing_train else "")
                + (" These rows have no LPIPS or depth and normal errors: they trained before those were measured, "
-                  "and their models were not kept. The other seeds of each variant carry them (\"over seeds\", "
-                  "below)." if any(by[s, v].get("lpips") is None for s in both for v in ("default", "compact"))
+                  "and their models were not kept. A variant's other seeds carry them where it has some (\"over "
+                  "seeds\", below)." if any(by[s, v].get("lpips") is None for s in both for v in ("default", "compact"))
                   else ""))
 
     # -------- compact against default
