@@ -92,6 +92,7 @@ def test_plateau_rule_keeps_only_a_model_trained_under_the_late_loss():
 def test_normal_settle_sets_the_rule_only_where_the_normal_loss_acts():
     cfg = TrainConfig().replace(recipe="auto", normal_settle=1000)
     assert PlateauRule.from_config(cfg).keep_from == cfg.normal_from + 1000
+    assert PlateauRule.from_config(cfg.replace(steps=cfg.normal_from + 500)).keep_from == cfg.normal_from + 500
     for off in (dict(lambda_normal=0.0), dict(normal_from=cfg.steps), dict(normal_settle=0)):
         assert PlateauRule.from_config(cfg.replace(**off)).keep_from == 0
     with pytest.raises(ConfigError, match="normal_settle"):

@@ -39,10 +39,11 @@ class PlateauRule:
     @classmethod
     def from_config(cls, c, full_resolution_from: int = 0) -> "PlateauRule":
         """The config's rule; it never acts before training reaches full resolution, and with
-        `normal_settle` it keeps a model that has had the normal loss that many steps."""
+        `normal_settle` it keeps a model that has had the normal loss that many steps (or from the
+        ceiling's step, where `steps` ends the run sooner)."""
         normal = c.normal_settle and c.lambda_normal > 0 and c.normal_from < c.steps
         return cls(c.stop_patience, c.stop_min_gain, max(c.stop_after, full_resolution_from), c.lr_anneal,
-                   c.normal_from + c.normal_settle if normal else 0)
+                   min(c.normal_from + c.normal_settle, c.steps) if normal else 0)
 
     @staticmethod
     def initial() -> dict:
