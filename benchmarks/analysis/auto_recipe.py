@@ -200,8 +200,21 @@ def flat(config: dict, prefix: str = "") -> dict:
 
 def differences(a: dict, b: dict) -> list[str]:
     """The settings two runs' configs differ in (auto_runs fills a setting a config predates with
-    its default, as that run trained with it)."""
+    its default, as that run trained with it; a carried record may hold None for one: unrecorded)."""
     return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+
+
+def differs_cell(a: dict) -> str:
+    """An ablation's "differs in" cell: the settings both runs record and set apart, then those only
+    one of them records (a setting added after the other trained)."""
+    run, base = a.get("settings") or {}, a.get("base_settings") or {}
+    names = a.get("differs_in") or []
+    if not base:
+        return ", ".join(names) or "-"
+    known = [k for k in names if run.get(k) is not None and base.get(k) is not None]
+    unrecorded = [k for k in names if k not in known]
+    only = f"; recorded by one run only (the other predates them): {', '.join(unrecorded)}" if unrecorded else ""
+    return (", ".join(known) or "-") + only
 
 
 def ablations(runs: list[dict]) -> list[dict]:
@@ -216,8 +229,10 @@ def ablations(runs: list[dict]) -> list[dict]:
             continue
         b = min(bases, key=lambda b: (len(differences(r.get("settings") or {}, b.get("settings") or {})),
                                       BASES.index(b["variant"])))
+        diff = differences(r.get("settings") or {}, b.get("settings") or {})
         out.append({"scene": r["scene"], "variant": r["variant"], "against": b["variant"], "psnr": r["psnr"],
-                    "differs_in": differences(r.get("settings") or {}, b.get("settings") or {}),
+                    "differs_in": diff, "settings": {k: (r.get("settings") or {}).get(k) for k in diff},
+                    "base_settings": {k: (b.get("settings") or {}).get(k) for k in diff},
                     "num_gaussians": r["num_gaussians"], "train_seconds": r["train_seconds"],
                     "delta_psnr_db": r["psnr"] - b["psnr"], "delta_seconds": r["train_seconds"] - b["train_seconds"],
                     "count_ratio": r["num_gaussians"] / b["num_gaussians"],
@@ -525,7 +540,7 @@ def readme(summary: list[dict], runs: list[dict], record: dict, unfinished: list
         by = {(r["scene"], r["variant"]): r for r in runs}
         normal = lambda scene, variant: fmt(by.get((scene, variant), {}).get("normal_err_deg"), ".1f")  # noqa: E731
         lines += [f"| {a['scene']} | {a['variant']} | {a.get('against', 'auto')} | "
-                  f"{', '.join(a.get('differs_in') or []) or '-'} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
+                  f"{differs_cell(a)} | {fmt(a['psnr'])} | {a['delta_psnr_db']:+.2f} | "
                   f"{normal(a['scene'], a['variant'])} | {normal(a['scene'], a.get('against', 'auto'))} | "
                   f"{a['num_gaussians']:,} | {a['count_ratio']:.2f} | {a['train_seconds']:.0f} | "
                   f"{a['delta_seconds']:+.0f} | {'yes' if a['same_code'] else 'no'} |" for a in ablated]
