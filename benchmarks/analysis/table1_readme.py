@@ -189,6 +189,17 @@ def default_seeds_section(rows: list[dict]) -> list[str]:
         runs, "segment") + [""]
 
 
+def auto_recipe_settings() -> dict:
+    """The auto recipe's settings as the code sets them (train/recipes.py, read on its own: the
+    train package would import JAX)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("recipes", ROOT / "ghsplat_jax" / "train" / "recipes.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.RECIPES["auto"]
+
+
 def prior_note(auto: dict | None, readme: str) -> str:
     """How many of the recipe's seeds in an auto_recipe results.json kept a model that never trained
     under the normal prior, and where the README groups the geometry by it ('' without records)."""
@@ -197,9 +208,14 @@ def prior_note(auto: dict | None, readme: str) -> str:
     if not seeds or None in steps:
         return ""
     share = f"All {len(seeds)}" if steps.count(0) == len(seeds) else f"{steps.count(0)} of the {len(seeds)}"
+    settle = auto_recipe_settings().get("normal_settle")
+    before = [r for r in seeds if not (r.get("settings") or {}).get("normal_settle")]
     return (f" {share} runs kept a model from before the normal-consistency loss "
             "started (their best validation check came before it), so their normal errors are those of a model "
-            f"without it: [{readme}]({readme}#geometry-against-the-normal-priors-steps-in-the-kept-model).")
+            f"without it: [{readme}]({readme}#geometry-against-the-normal-priors-steps-in-the-kept-model)."
+            + (f" {'These' if len(before) == len(seeds) else f'{len(before)} of them'} trained before the recipe "
+               f"kept only a model with {settle:,} steps of it (`normal_settle`; its `auto_settle` rows there)."
+               if settle and before else ""))
 
 
 def auto_section(rows: list[dict], auto: dict | None = None) -> list[str]:
