@@ -16,11 +16,12 @@ override (a recipe's table, then the config file, then the command line).
   chance: 20 of the 24 Table 1 runs at 192x144 and all 24 at 384x288 kept one from before it (29-38
   degrees of mean normal error, against 17-24 for runs that kept one with it). So the recipe keeps
   only a model that has had it 1,000 steps (normal_settle): on row0_x0, row2_x0 and row2_x1 at
-  192x144 and row2_x1 at 384x288 (one seed each, against the recipe's three before it) the normal
-  error fell from 30-37 to 19-23 degrees and the median depth error by 26-31%, for -0.30 to +0.12
-  dB of test PSNR (LPIPS within 0.01) and 11-47% more training time (8,750-9,250 steps, where those
-  runs had stopped at 6,250-8,000). benchmarks/results/auto_recipe/ (README: "Ablations over seeds
-  or segments").
+  192x144 and row0_x0 and row2_x1 at 384x288 (one seed each, against the recipe's three before it)
+  the normal error fell from 30-37 to 19-23 degrees and the median depth error by 26-44%, for -0.30
+  to +0.26 dB of test PSNR (LPIPS -0.012 to +0.003) and 11-79% more training time (8,750-9,250
+  steps, where those runs had stopped at 5,500-8,000; the most at 384x288, where they stopped
+  soonest). benchmarks/results/auto_recipe/ and auto_recipe/table1_384/ (READMEs: "Ablations over
+  seeds or segments").
 """
 
 from __future__ import annotations
