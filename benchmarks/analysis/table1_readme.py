@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: readme_check.py
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/analysis/: auto_recipe.py
-from auto_recipe import is_seed, prior_steps, spread  # noqa: E402
+from auto_recipe import fmt_spread, is_seed, prior_steps, spread  # noqa: E402
 from readme_check import text_diff, write_or_check  # noqa: E402
 
 from ghsplat_jax.io_utils import one_machine  # noqa: E402
@@ -130,10 +130,7 @@ def signed(x: float, spec: str) -> str:
 
 def mean_sd(values: list[float], spec: str) -> str:
     """'mean ± sample sd' of the values that are there ('-' for none; one value: no spread)."""
-    s = spread(values)
-    if not s["n"]:
-        return "-"
-    return format(s["mean"], spec) if s["n"] == 1 else f"{format(s['mean'], spec)} ± {format(s['std'], spec)}"
+    return fmt_spread(spread(values), spec)
 
 
 def timed_seconds(rows: list[dict], main_kind: str, among: list[dict]) -> str:
@@ -284,8 +281,8 @@ def compact_seeds_section(rows: list[dict]) -> list[str]:
         gain, sd = compact["mean"] - base["mean"], (compact["std"] ** 2 + base["std"] ** 2) ** 0.5
         smallest = compact["min"] - base["max"]
         outside = smallest > 0 and gain > 2 * sd
-        body.append([seg, f"{len(rs)} and {base['n']}", mean_sd([r["psnr"] for r in rs], ".2f"),
-                     mean_sd([r["psnr"] for r in defaults if r["scene"] == seg], ".2f"), f"{gain:+.2f} ± {sd:.2f}",
+        body.append([seg, f"{len(rs)} and {base['n']}", fmt_spread(compact, ".2f"),
+                     fmt_spread(base, ".2f"), f"{gain:+.2f} ± {sd:.2f}",
                      f"{smallest:+.2f}", "yes" if outside else "no", mean_sd([r["num_gaussians"] for r in rs], ",.0f"),
                      timed_seconds(rs, main_kind, rows), revision_list(rs)])
     if not body:
