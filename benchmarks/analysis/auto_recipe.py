@@ -183,7 +183,7 @@ def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str, amon
     return row
 
 
-BASES = ("auto", "auto_normal2k")  # the recipe's seed-0 run, and the previous recipe's
+BASES = ("auto", "auto_normal2k", "auto_settle")  # the recipe's seed-0 run, the previous recipe's, and the normal_settle run
 NOT_SETTINGS = {"seed", "test_curve_every", "progress", "checkpoint_every"}  # no part of the method
 
 
