@@ -597,6 +597,32 @@ def test_auto_recipe_report_times_levels_keeps_gone_runs_and_reads_ablations(tmp
     assert "| seg | auto_nores | auto | res_schedule | 27.50 | -0.50 |" in (out / "README.md").read_text()
 
 
+def test_an_ablation_is_compared_with_the_base_it_truly_differs_least_from():
+    from benchmark_scripts import load_benchmark
+
+    report = load_benchmark("auto_recipe")
+
+    def run(variant, psnr, **settings):
+        return {"scene": "seg", "variant": variant, "psnr": psnr, "num_gaussians": 20000, "train_seconds": 600.0,
+                "code_revision": "abc", "settings": {"normal_from": 7000, "normal_settle": 0} | settings}
+
+    # The recipe's run predates the judge's settings (None: unrecorded); the settle run records them.
+    unrecorded = {"strategy.level_judge": None, "strategy.fork_steps": None, "strategy.rewind_lr": None}
+    judge = {"strategy.level_judge": "gain", "strategy.fork_steps": 500, "strategy.rewind_lr": False}
+    recipe = run("auto", 28.0, **unrecorded)
+    settle = run("auto_settle", 28.1, normal_settle=1000, **judge)
+    plateau = run("auto_plateau", 27.9, **(judge | {"strategy.level_judge": "plateau"}))
+    early = run("auto_normal5k", 27.7, normal_from=5000, normal_settle=1000, **judge)
+    by = {a["variant"]: a for a in report.ablations([recipe, settle, plateau, early])}
+    # Two settings only the newer run records count for less than one both record and set apart.
+    assert by["auto_plateau"]["against"] == "auto"
+    assert report.differs_cell(by["auto_plateau"]) == ("-; recorded by one run only (the other predates them): "
+                                                       "strategy.fork_steps, strategy.level_judge, strategy.rewind_lr")
+    assert (by["auto_normal5k"]["against"], by["auto_normal5k"]["differs_in"]) == ("auto_settle", ["normal_from"])
+    assert by["auto_normal5k"]["delta_psnr_db"] == pytest.approx(-0.4)
+    assert (by["auto_settle"]["against"], by["auto_settle"]["differs_in"][0]) == ("auto", "normal_settle")
+
+
 def test_auto_recipe_report_times_only_runs_of_one_kind_of_machine(tmp_path):
     """Seeds trained on two kinds of machine: the PSNR counts every seed, the times only those of
     the report's main kind (one scene's seeds all elsewhere: its own kind), and the rows say so."""

@@ -183,7 +183,8 @@ def equal_time(scene: str, runs: list[dict], curves: list[dict], kind: str, amon
     return row
 
 
-BASES = ("auto", "auto_normal2k", "auto_settle")  # the recipe's seed-0 run, the previous recipe's, and the normal_settle run
+# The recipe's seed-0 run, the previous recipe's, and the first run with normal_settle.
+BASES = ("auto", "auto_normal2k", "auto_settle")
 NOT_SETTINGS = {"seed", "test_curve_every", "progress", "checkpoint_every"}  # no part of the method
 
 
@@ -204,30 +205,37 @@ def differences(a: dict, b: dict) -> list[str]:
     return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
 
 
+def split_differences(a: dict, b: dict, names: list[str] | None = None) -> tuple[list[str], list[str]]:
+    """The settings two runs differ in (`names`, or all of them): those both record and set apart, and
+    those only one records (a setting added after the other trained is no evidence that they differ)."""
+    names = differences(a, b) if names is None else names
+    known = [k for k in names if a.get(k) is not None and b.get(k) is not None]
+    return known, [k for k in names if k not in known]
+
+
 def differs_cell(a: dict) -> str:
     """An ablation's "differs in" cell: the settings both runs record and set apart, then those only
     one of them records (a setting added after the other trained)."""
-    run, base = a.get("settings") or {}, a.get("base_settings") or {}
+    base = a.get("base_settings") or {}
     names = a.get("differs_in") or []
     if not base:
         return ", ".join(names) or "-"
-    known = [k for k in names if run.get(k) is not None and base.get(k) is not None]
-    unrecorded = [k for k in names if k not in known]
+    known, unrecorded = split_differences(a.get("settings") or {}, base, names)
     only = f"; recorded by one run only (the other predates them): {', '.join(unrecorded)}" if unrecorded else ""
     return (", ".join(known) or "-") + only
 
 
 def ablations(runs: list[dict]) -> list[dict]:
     """Each ablation run against the scene's base run (BASES) whose settings it differs least
-    from, with the settings they differ in: what the ablated part changes. The previous recipe's
-    run is itself compared with the recipe's."""
+    from (in settings both record, then in those one predates), with the settings they differ in:
+    what the ablated part changes. A base run is compared with the bases listed before it."""
     out = []
     for r in runs:
         bases = [b for b in runs if b["scene"] == r["scene"] and b["variant"] in BASES
                  and BASES.index(b["variant"]) < (BASES.index(r["variant"]) if r["variant"] in BASES else len(BASES))]
         if is_seed(r["variant"]) or not bases:
             continue
-        b = min(bases, key=lambda b: (len(differences(r.get("settings") or {}, b.get("settings") or {})),
+        b = min(bases, key=lambda b: (*map(len, split_differences(r.get("settings") or {}, b.get("settings") or {})),
                                       BASES.index(b["variant"])))
         diff = differences(r.get("settings") or {}, b.get("settings") or {})
         out.append({"scene": r["scene"], "variant": r["variant"], "against": b["variant"], "psnr": r["psnr"],
