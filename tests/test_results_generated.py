@@ -216,9 +216,12 @@ def test_compact_seeds_are_judged_against_the_default_by_their_spread(table1):
             row("s3", "default", 28.0), row("s3", "compact", 29.0),  # one seed: no row
             row("s4", "compact_curve", 29.0), row("s4", "compact_seedx", 29.0),  # neither is a seed
             row("s5", "default", 28.0), row("s5", "compact", 29.0, None), row("s5", "compact_seed1", 29.0)]
+    rows[2]["lpips"], rows[3]["lpips"] = 0.14, 0.12  # the seed-0 run predates LPIPS
     text = "\n".join(table1.compact_seeds_section(rows))
     assert ("| s1 | 3 and 1 | 28.80 ± 0.10 | 28.00 | +0.80 ± 0.10 | +0.70 | yes | 30,000 ± 0 | 2,600 ± 0 | "
             "aaaaaaa, bbbbbbb |" in text)
+    # The same seeds' metrics, each over the seeds that record it.
+    assert "| s1 | 3 | 28.80 ± 0.10 | - | 0.130 ± 0.014 (2 of 3 seeds) | - | - | 30,000 ± 0 |" in text
     assert "| s2 | 2 and 1 | 28.20 ± 0.42 | 28.00 | +0.20 ± 0.42 | -0.10 | no |" in text
     assert "| s3 |" not in text and "| s4 |" not in text and "| aaaaaaa, 1 not recorded |" in text  # s5's
     assert table1.compact_seeds_section(rows[7:11]) == []
