@@ -2,12 +2,14 @@
 by window, surfel count, the training-view PSNR against wall time and the normal loss by step.
 
     python benchmarks/analysis/run_progress.py runs/fern30k --name train_fern_progress
+    python benchmarks/analysis/run_progress.py runs/table1_greenhouse/row2_x1/default \
+        --name table1_greenhouse/progress/row2_x1        # a Table 1 run's record
 
 Training PSNR is of the one view each step trains on (smoothed over 100 steps), not a test
 metric: a run trained with `--set test_curve_every=N` also has the test views' PSNR every N
 steps (test_curve.jsonl), charted against the same training time; a finished run's metrics.json
 is copied in. Stalls are the steps that took over STALL_S (compiles, densification rounds,
-checkpoints). Writes benchmarks/results/NAME.json and NAME.png.
+checkpoints). Writes benchmarks/results/NAME.json and NAME.png (NAME may name a folder there).
 """
 
 from __future__ import annotations
@@ -108,6 +110,7 @@ def main(argv=None) -> int:
         summary["test_curve"] = {k: [p.get(k) for p in curve] for k in keys}
     if (args.run / "metrics.json").is_file():
         summary["metrics"] = json.loads((args.run / "metrics.json").read_text())
+    (RESULTS / args.name).parent.mkdir(parents=True, exist_ok=True)
     write_json(RESULTS / f"{args.name}.json", summary)
     state = "finished" if summary["finished"] else f"{summary['steps_done']} of {summary['schedule_steps']} steps"
     title = f"{args.run.name}: {state}, {summary['surfels']} surfels, {summary['elapsed_s'] / 3600:.2f} h"

@@ -1,7 +1,7 @@
 """Write benchmarks/results/table1_greenhouse/README.md from the committed results files: every
 number in it is computed here from results.json, segments.json, table1.md (the paper's ranges),
 pareto.json, device_h200_sharing.json, ../fusion_profile_step.json, the runs' progress records
-(../table1_greenhouse_*_progress.json) and notes.json (the facts no results file records).
+(progress/SEGMENT[_compact][_run2].json) and notes.json (the facts no results file records).
 
     python benchmarks/analysis/table1_readme.py            # rewrite README.md
     python benchmarks/analysis/table1_readme.py --check    # exit 1 with a diff if README.md differs
@@ -40,9 +40,7 @@ def load(results: Path = RESULTS) -> dict:
     """Every file the README is made from, parsed."""
     folder = results / NAME
     read = lambda p: json.loads(p.read_text())  # noqa: E731
-    progress = {}
-    for path in sorted(results.glob(f"{NAME}_*_progress.json")):
-        progress[path.name] = read(path)
+    progress = {path.stem: read(path) for path in sorted((folder / "progress").glob("*.json"))}
     paper = re.search(r"paper[^:]*: L1 ([\d.]+)-([\d.]+), PSNR ([\d.]+)-([\d.]+) dB, ([\d,]+)-([\d,]+) Gaussians",
                       (folder / "table1.md").read_text())
     if paper is None:
@@ -557,9 +555,9 @@ def render(data: dict) -> str:
                f"ran on different devices (`pareto.json` says so for {names(left_out) if left_out else 'none'}). "
                f"Rows evaluated before metrics named the device show none ({len(no_device)} of {len(finished)}); all "
                "of them ran on the CPU.")
-    run2 = sorted({n.split("_run")[0][len(NAME) + 1:] for n in data["progress"] if "_run" in n})
-    out.append(f"- The PSNR-against-time curve of each run is in `../{NAME}_SEGMENT[_compact]_progress.{{json,png}}` "
-               f"({names(run2)}: `_run2_progress` for the default run in the table).")
+    run2 = sorted({n.split("_run")[0] for n in data["progress"] if "_run" in n})
+    out.append("- The PSNR-against-time curve of each run is in `progress/SEGMENT[_compact].{json,png}` "
+               f"(the default run in the table is `SEGMENT_run2` for {names(run2)}).")
     out.append("")
 
     # -------- compact variant
@@ -580,7 +578,7 @@ def render(data: dict) -> str:
                  [[f"{s} (compact)", f"{c[s]['steps']:,}", f"{c[s]['psnr']:.2f}", f"{c[s]['l1']:.4f}",
                    f"{c[s]['ssim']:.3f}", f"{c[s]['num_gaussians']:,}", f"{c[s]['train_seconds']:,.0f}"] for s in both])
     out.append("")
-    first = [p_ for n, p_ in data["progress"].items() if n == f"{NAME}_row1_x0_progress.json"]
+    first = [p_ for n, p_ in data["progress"].items() if n == "row1_x0"]
     if first and "row1_x0" in both:
         r0 = first[0]["surfels"]
         cap_ = c["row1_x0"]["num_gaussians"]
