@@ -253,6 +253,26 @@ def test_default_seeds_carry_the_metrics_the_protocol_rows_lack(table1):
     assert table1.default_seeds_section(rows[3:]) == []
 
 
+def test_default_against_compact_names_each_metric_the_compact_loses(table1):
+    """Beyond PSNR: a segment enters only where both variants' seeds record every metric, and the
+    verdict names each metric whose compact mean is higher (worse), segment by segment."""
+    def row(scene, variant, lpips, depth, normal):
+        return {"scene": scene, "variant": variant, "lpips": lpips, "depth_abs_err": depth, "normal_err_deg": normal}
+
+    defaults = [row("s1", "default", None, None, None), row("s1", "default_seed1", 0.11, 0.024, 24.0),
+                row("s2", "default_seed1", 0.15, 0.030, 22.0), row("s3", "default_seed1", 0.15, 0.030, 22.0)]
+    compacts = [row("s1", "compact_seed1", 0.13, 0.020, 20.0), row("s1", "compact_seed2", 0.15, 0.022, 19.0),
+                row("s2", "compact_seed1", 0.14, 0.031, 18.0), row("s3", "compact", None, None, None)]
+    text = "\n".join(table1.quality_against_compact(defaults, compacts))
+    assert ("| s1 | 0.110 (1) | 0.140 ± 0.014 (2) | 0.0240 (1) | 0.0210 ± 0.0014 (2) | 24.0 (1) | 19.5 ± 0.7 (2) |"
+            in text)
+    assert "| s3 |" not in text  # its compact seed records none of them
+    assert "worse on s1 (LPIPS) and s2 (depth error)" in text
+    better = row("s2", "compact_seed1", 0.14, 0.029, 18.0)
+    assert "as good or better" in "\n".join(table1.quality_against_compact(defaults[2:3], [better]))
+    assert table1.quality_against_compact(defaults, compacts[3:]) == []
+
+
 def test_table1_seed_table_times_one_kind_of_machine(table1):
     """A segment whose seeds trained on two kinds of machine: its PSNR over every seed, its
     training seconds over the table's main kind only, with the kind named."""
