@@ -251,6 +251,11 @@ def test_default_seeds_carry_the_metrics_the_protocol_rows_lack(table1):
             "| 20.0 ± 0.0 (2 of 3 seeds) | 150,000 ± 0 |" in text)
     assert "| s2 |" not in text and "| s3 |" not in text and "Code revisions: ccccccc, 1 not recorded." in text
     assert table1.default_seeds_section(rows[3:]) == []
+    assert "the machine's as much as the method's" in text  # no conditions recorded: the seconds may be shared
+    alone = {f"s1/{v}": {"text": "alone", "alone": True} for v in ("default", "default_seed1", "default_seed2")}
+    text = "\n".join(table1.default_seeds_section(rows, alone))
+    assert "(s1/default: alone; s1/default_seed1: alone; s1/default_seed2: alone)." in text
+    assert "machine's" not in text
 
 
 def test_default_against_compact_names_each_metric_the_compact_loses(table1):

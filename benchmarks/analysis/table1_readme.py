@@ -177,16 +177,17 @@ def default_seeds_section(rows: list[dict], conditions: dict | None = None) -> l
     runs = several_seeds(finished_seeds(rows, "default"))
     if not runs:
         return []
-    shared = [f"{r['scene']}/{r['variant']}: {c['text']}" for r in runs
-              if (c := (conditions or {}).get(f"{r['scene']}/{r['variant']}"))]
-    return ["## The 2DGS default over seeds", "",
-            "The Table 1 protocol (`default`, seed 0) and `default_seedN`, the same settings with `seed = N`, on the "
-            "segments where more than one has finished (mean ± sample sd). The seed-0 runs trained before LPIPS and "
-            "the geometry errors were measured and their models were not kept, so those columns are over the other "
-            "seeds, as their counts say. Code revisions: " + revision_list(runs) + ". Training seconds are as each "
-            "run recorded them" + (f" ({'; '.join(shared)})" if shared else "") + ", so their spread is the "
-            "machine's, not the method's.", ""] + seed_table(runs, "segment") + [""] + quality_against_compact(
-        runs, finished_seeds(rows, "compact"))
+    known = {k: c for r in runs if (c := (conditions or {}).get(k := f"{r['scene']}/{r['variant']}"))}
+    alone = len(known) == len(runs) and all(c.get("alone") for c in known.values())
+    how = "; ".join(f"{k}: {c['text']}" for k, c in known.items())
+    intro = ("The Table 1 protocol (`default`, seed 0) and `default_seedN`, the same settings with `seed = N`, on the "
+             "segments where more than one has finished (mean ± sample sd). The seed-0 runs trained before LPIPS and "
+             "the geometry errors were measured and their models were not kept, so those columns are over the other "
+             "seeds, as their counts say. Code revisions: " + revision_list(runs) + ". Training seconds are as each "
+             "run recorded them" + (f" ({how})" if how else "")
+             + ("." if alone else ", so their spread is the machine's as much as the method's."))
+    return (["## The 2DGS default over seeds", "", intro, ""] + seed_table(runs, "segment") + [""]
+            + quality_against_compact(runs, finished_seeds(rows, "compact")))
 
 
 QUALITY = (("lpips", "LPIPS", "LPIPS", ".3f"), ("depth_abs_err", "depth err (m)", "depth error", ".4f"),
