@@ -139,6 +139,12 @@ def timed_seconds(rows: list[dict], main_kind: str, among: list[dict]) -> str:
     return mean_sd([r["train_seconds"] for r in timed], ",.0f") + note
 
 
+# The metrics beyond PSNR (seed_table's columns, quality_against_compact's comparison): key, column,
+# words, format; lower is better for each.
+QUALITY = (("lpips", "LPIPS", "LPIPS", ".3f"), ("depth_abs_err", "depth err (m)", "depth error", ".4f"),
+           ("normal_err_deg", "normal err (deg)", "normal error", ".1f"))
+
+
 def seed_table(rows: list[dict], first: str) -> list[str]:
     """One row per scene of a variant's seeds: mean ± sd of the test metrics over the seeds that
     record each (how many, where not all do), and of the training seconds of the seeds on one kind
@@ -152,11 +158,11 @@ def seed_table(rows: list[dict], first: str) -> list[str]:
             n = sum(v is not None for v in values)
             return mean_sd(values, spec) + ("" if n in (0, len(rs)) else f" ({n} of {len(rs)} seeds)")
 
-        body.append([s, len(rs), cell("psnr", ".2f"), cell("ssim", ".3f"), cell("lpips", ".3f"),
-                     cell("depth_abs_err", ".4f"), cell("normal_err_deg", ".1f"), cell("num_gaussians", ",.0f"),
-                     timed_seconds(rs, main_kind, rows)])
-    return table([first, "seeds", "test PSNR (dB)", "SSIM", "LPIPS", "depth err (m)", "normal err (deg)",
-                  "Gaussians", "training s"], body)
+        body.append([s, len(rs), cell("psnr", ".2f"), cell("ssim", ".3f")]
+                    + [cell(key, spec) for key, _, _, spec in QUALITY]
+                    + [cell("num_gaussians", ",.0f"), timed_seconds(rs, main_kind, rows)])
+    return table([first, "seeds", "test PSNR (dB)", "SSIM"] + [column for _, column, _, _ in QUALITY]
+                 + ["Gaussians", "training s"], body)
 
 
 def finished_seeds(rows: list[dict], base: str = "auto") -> list[dict]:
@@ -188,10 +194,6 @@ def default_seeds_section(rows: list[dict], conditions: dict | None = None) -> l
              + ("." if alone else ", so their spread is the machine's as much as the method's."))
     return (["## The 2DGS default over seeds", "", intro, ""] + seed_table(runs, "segment") + [""]
             + quality_against_compact(runs, finished_seeds(rows, "compact")))
-
-
-QUALITY = (("lpips", "LPIPS", "LPIPS", ".3f"), ("depth_abs_err", "depth err (m)", "depth error", ".4f"),
-           ("normal_err_deg", "normal err (deg)", "normal error", ".1f"))  # key, column, words; lower is better
 
 
 def quality_against_compact(defaults: list[dict], compacts: list[dict]) -> list[str]:
@@ -612,9 +614,9 @@ def render(data: dict) -> str:
                  [[f"{s} (compact)", f"{c[s]['steps']:,}", f"{c[s]['psnr']:.2f}", f"{c[s]['l1']:.4f}",
                    f"{c[s]['ssim']:.3f}", f"{c[s]['num_gaussians']:,}", f"{c[s]['train_seconds']:,.0f}"] for s in both])
     out.append("")
-    first = [p_ for n, p_ in data["progress"].items() if n == "row1_x0"]
+    first = data["progress"].get("row1_x0")  # the first default run's record
     if first and "row1_x0" in both:
-        r0 = first[0]["surfels"]
+        r0 = first["surfels"]
         cap_ = c["row1_x0"]["num_gaussians"]
         out.append(f"- **row1_x0's cap** came from a first default run whose final count was {r0:,} (max_surfels = "
                    f"{cap_:,}); that run's folder was lost, and the default in the table, a second run, finished at "
